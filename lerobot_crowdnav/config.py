@@ -1,0 +1,196 @@
+"""Simulator configuration: one dataclass, two presets, and the episode-seed splits.
+
+Every number that comes from a paper lives here, once, with its source:
+- ``paper``: the PDPO paper's setting (its table of simulation parameters).
+- ``crowdnavpp``: the defaults of the CrowdNav++ repository (Liu et al., ICRA 2023,
+  ``crowd_nav/configs/config.py``; env ``CrowdSimPred-v0``).
+
+A field left at ``None`` takes the preset's value; :meth:`CrowdSimConfig.resolve` returns the
+concrete configuration that the simulator uses and that results are saved with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+TASKS = ("CrowdNav-v0", "BoundedCrowdNav-v0")
+"""``CrowdNav-v0``: the original benchmark, no boundary. ``BoundedCrowdNav-v0``: walls on the
+boundary of the ``[-arena_size, arena_size]^2`` workspace; touching one is a collision."""
+
+_COMMON = dict(
+    num_humans=20,  # both: 20 humans, fixed count
+    arena_size=6.0,  # both: 12 x 12 m workspace, robot start/goal ~ U(-6, 6)^2
+    robot_v_pref=1.0,  # both: robot max speed (m/s)
+    robot_min_start_goal_dist=8.0,  # CrowdNav++ generate_robot: |start - goal| >= 8
+    human_radius=0.3,  # CrowdNav++ humans.radius (used when attributes are not randomized)
+    human_v_pref=1.0,  # CrowdNav++ humans.v_pref
+    human_radius_range=(0.3, 0.5),  # CrowdNav++ sample_random_attributes
+    human_v_pref_range=(0.5, 1.5),
+    circle_radius=6.0 * math.sqrt(2.0),  # CrowdNav++ sim.circle_radius: circle through the corners
+    start_noise=2.0,  # CrowdNav++ CrowdSimVarNum noise_range: start noise U(0,1)*2, not centred
+    dt=0.25,  # control interval (s)
+    time_limit=50.0,  # episode time limit (s); timeout fires at t >= time_limit - 1
+    prediction_steps=5,  # constant-velocity prediction horizon L (steps)
+    goal_change_prob=0.5,  # CrowdNav++ goal_change_chance
+    discomfort_dist=0.25,  # CrowdNav++ reward.discomfort_dist (m)
+    # ORCA (CrowdNav++ config.orca, RVO2 parameters), for humans and the ORCA robot.
+    orca_neighbor_dist=10.0,
+    orca_time_horizon=5.0,
+    orca_time_horizon_obst=5.0,
+    orca_safety_space=0.15,  # added to every ORCA radius, with the 0.01 pad below
+    orca_radius_pad=0.01,
+    orca_others_max_speed=1.0,  # max speed assumed for the other agents (does not affect agent 0)
+    # Reward (CrowdNav++ config.reward and CrowdSimPred.calc_reward).
+    success_reward=10.0,
+    collision_penalty=-20.0,
+    discomfort_penalty_factor=10.0,
+    potential_factor=2.0,  # holonomic robot
+    prediction_radius=0.3,  # humans.radius in the prediction penalty and the intrusion test
+    sentinel=15.0,  # observation value of invisible-human rows
+)
+
+PRESETS: dict[str, dict] = {
+    "paper": dict(
+        _COMMON,
+        robot_radius=0.2,
+        sensing_range=6.0,
+        randomize_attributes=True,  # paper: r ~ U(0.3, 0.5), v_pref ~ U(0.5, 1.5) per human
+        goal_change_interval=1.0,  # paper text: every 1 s
+    ),
+    "crowdnavpp": dict(
+        _COMMON,
+        robot_radius=0.3,
+        sensing_range=5.0,
+        randomize_attributes=True,  # config.env.randomize_attributes (its ORCA baseline: False)
+        goal_change_interval=5.0,  # the code: `global_time % 5 == 0`
+    ),
+}
+
+
+@dataclass
+class CrowdSimConfig:
+    """Crowd simulator settings. Units: metres, seconds, m/s.
+
+    ``task`` picks the variant (see :data:`TASKS`), ``preset`` the defaults; every other field
+    overrides its preset value when set. ``compute_intrusion`` turns on the ITR/SD intrusion test
+    (a 5-step ORCA look-ahead of the humans each step, about 5x the humans' cost): on for
+    evaluation, off for fast training rollouts.
+    """
+
+    task: str = "BoundedCrowdNav-v0"
+    preset: str = "paper"
+    compute_intrusion: bool = True
+    num_humans: int | None = None
+    arena_size: float | None = None
+    robot_radius: float | None = None
+    robot_v_pref: float | None = None
+    robot_min_start_goal_dist: float | None = None
+    sensing_range: float | None = None
+    randomize_attributes: bool | None = None
+    human_radius: float | None = None
+    human_v_pref: float | None = None
+    human_radius_range: tuple[float, float] | None = None
+    human_v_pref_range: tuple[float, float] | None = None
+    circle_radius: float | None = None
+    start_noise: float | None = None
+    dt: float | None = None
+    time_limit: float | None = None
+    prediction_steps: int | None = None
+    goal_change_interval: float | None = None
+    goal_change_prob: float | None = None
+    discomfort_dist: float | None = None
+    orca_neighbor_dist: float | None = None
+    orca_time_horizon: float | None = None
+    orca_time_horizon_obst: float | None = None
+    orca_safety_space: float | None = None
+    orca_radius_pad: float | None = None
+    orca_others_max_speed: float | None = None
+    success_reward: float | None = None
+    collision_penalty: float | None = None
+    discomfort_penalty_factor: float | None = None
+    potential_factor: float | None = None
+    prediction_radius: float | None = None
+    sentinel: float | None = None
+
+    @property
+    def bounded(self) -> bool:
+        return self.task == "BoundedCrowdNav-v0"
+
+    def resolve(self) -> CrowdSimConfig:
+        """A copy with every ``None`` replaced by the preset value, validated."""
+        if self.task not in TASKS:
+            raise ValueError(f"unknown task {self.task!r}; choose one of {', '.join(TASKS)}")
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
+        preset = PRESETS[self.preset]
+        values = {}
+        for f in dataclasses.fields(CrowdSimConfig):
+            v = getattr(self, f.name)
+            values[f.name] = preset[f.name] if v is None else v
+        for key in ("human_radius_range", "human_v_pref_range"):
+            values[key] = tuple(float(x) for x in values[key])
+        cfg = CrowdSimConfig(**values)
+        cfg._validate()
+        return cfg
+
+    def _validate(self) -> None:
+        positive = ("arena_size", "robot_radius", "robot_v_pref", "sensing_range", "human_radius",
+                    "human_v_pref", "circle_radius", "dt", "time_limit", "goal_change_interval",
+                    "orca_neighbor_dist", "orca_time_horizon", "orca_time_horizon_obst")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.num_humans < 1:
+            raise ValueError(f"num_humans must be >= 1, got {self.num_humans}")
+        if self.prediction_steps < 1:
+            raise ValueError(f"prediction_steps must be >= 1, got {self.prediction_steps}")
+        if not 0.0 <= self.goal_change_prob <= 1.0:
+            raise ValueError(f"goal_change_prob must be in [0, 1], got {self.goal_change_prob}")
+        for name in ("human_radius_range", "human_v_pref_range"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name} must satisfy 0 < low <= high, got {(lo, hi)}")
+        steps = self.goal_change_interval / self.dt
+        if abs(steps - round(steps)) > 1e-9:
+            raise ValueError("goal_change_interval must be a multiple of dt")
+        if self.robot_min_start_goal_dist >= 2 * math.sqrt(2) * self.arena_size:
+            raise ValueError("robot_min_start_goal_dist cannot be met inside the arena")
+
+    # Derived quantities, in steps.
+    @property
+    def max_steps(self) -> int:
+        """Steps of an episode that times out: the timeout fires once t >= time_limit - 1."""
+        return int(math.ceil((self.time_limit - 1.0) / self.dt - 1e-9)) + 1
+
+    @property
+    def goal_change_every(self) -> int:
+        return int(round(self.goal_change_interval / self.dt))
+
+    @property
+    def obs_dim(self) -> int:
+        return 7 + 2 + self.num_humans * 2 * (self.prediction_steps + 1) + self.num_humans
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# Episode seeds. One seed = one episode, bitwise identical whatever the batch size or slot.
+SEED_SPLITS: dict[str, tuple[int, int]] = {
+    "train": (0, 1_000_000_000),  # [0, 1e9): demonstrations and RL rollouts
+    "val": (1_000_000_000, 1_000_000_100),  # 100 episodes: checkpoint selection
+    "test": (2_000_000_000, 2_000_000_500),  # 500 episodes: every reported table
+}
+
+
+def split_seeds(split: str, n: int | None = None, offset: int = 0) -> list[int]:
+    """The first ``n`` seeds (all if ``None``) of a split, starting ``offset`` into it."""
+    if split not in SEED_SPLITS:
+        raise ValueError(f"unknown split {split!r}; choose one of {', '.join(SEED_SPLITS)}")
+    lo, hi = SEED_SPLITS[split]
+    size = hi - lo
+    n = size - offset if n is None else n
+    if n < 0 or offset < 0 or offset + n > size:
+        raise ValueError(f"split {split!r} has {size} seeds; asked for {n} from offset {offset}")
+    return list(range(lo + offset, lo + offset + n))

@@ -1,0 +1,624 @@
+"""The batched crowd simulator: B environments stepped by one compiled call.
+
+State is a set of arrays with a leading batch axis (world frame, metres, m/s, seconds):
+
+=================  ==============  ==========================================================
+robot_pos/vel/goal  (B, 2)          robot centre, last executed velocity, goal
+potential           (B,)            CrowdNav++ potential ``-|pos - goal|`` (progress reward)
+step_count          (B,)            steps taken in the current episode
+human_pos/vel/goal  (B, N, 2)       true human states
+human_radius/vpref  (B, N)
+seen/seen_pos/...   (B, N[, 2])     the robot's memory of each human at its last observation
+pred                (B, N, L+1, 2)  positions shown in the last observation (k = 0..L), absolute
+visible             (B, N)          visibility in the last observation (by human index)
+rng                 (B, 4) uint64   xoshiro256** state of the episode's own generator
+=================  ==============  ==========================================================
+
+Every random draw of an episode (crowd generation, goal changes, respawns) comes from the
+generator seeded with the episode seed, and no computation mixes environments, so a seed gives a
+bitwise-identical episode whatever the batch size or the slot.
+
+Step order (CrowdNav++): (1) robot action clipped, humans' ORCA velocities from current states;
+(2) reward, termination and intrusion test on the pre-move positions; (3) everyone moves,
+t += dt; (4) observation; (5) random goal changes when due, then respawn of humans at their goal.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from .config import CrowdSimConfig
+from .orca import bounding_box, compute_new_velocity, make_obstacles
+
+# Episode events (``info["event"]``).
+RUNNING, SUCCESS, HUMAN_COLLISION, WALL_COLLISION, TIMEOUT = 0, 1, 2, 3, 4
+EVENT_NAMES = ("running", "success", "human_collision", "wall_collision", "timeout")
+
+ROBOT_DIM = 7  # px, py, radius, gx, gy, v_pref, theta
+ROBOT_THETA = math.pi / 2  # holonomic robot: heading stays at its initial pi/2 (CrowdNav++)
+
+_MAX_REJECTIONS = 100_000  # rejection-sampling guard for crowded custom configs
+
+
+class Params(NamedTuple):
+    """The resolved config as the compiled kernels see it (a numba-friendly tuple)."""
+
+    n_humans: int
+    bounded: bool
+    arena: float
+    robot_radius: float
+    robot_vpref: float
+    min_start_goal: float
+    sensing: float
+    randomize: bool
+    human_radius: float
+    human_vpref: float
+    radius_lo: float
+    radius_hi: float
+    vpref_lo: float
+    vpref_hi: float
+    circle_radius: float
+    start_noise: float
+    dt: float
+    time_limit: float
+    n_pred: int
+    goal_every: int
+    goal_prob: float
+    discomfort: float
+    neighbor_dist: float
+    time_horizon: float
+    time_horizon_obst: float
+    orca_pad: float
+    success_reward: float
+    collision_penalty: float
+    discomfort_factor: float
+    potential_factor: float
+    pred_radius: float
+    sentinel: float
+    intrusion: bool
+
+
+def make_params(cfg: CrowdSimConfig) -> Params:
+    return Params(
+        n_humans=cfg.num_humans, bounded=cfg.bounded, arena=cfg.arena_size,
+        robot_radius=cfg.robot_radius, robot_vpref=cfg.robot_v_pref,
+        min_start_goal=cfg.robot_min_start_goal_dist, sensing=cfg.sensing_range,
+        randomize=cfg.randomize_attributes, human_radius=cfg.human_radius,
+        human_vpref=cfg.human_v_pref, radius_lo=cfg.human_radius_range[0],
+        radius_hi=cfg.human_radius_range[1], vpref_lo=cfg.human_v_pref_range[0],
+        vpref_hi=cfg.human_v_pref_range[1], circle_radius=cfg.circle_radius,
+        start_noise=cfg.start_noise, dt=cfg.dt, time_limit=cfg.time_limit,
+        n_pred=cfg.prediction_steps, goal_every=cfg.goal_change_every,
+        goal_prob=cfg.goal_change_prob, discomfort=cfg.discomfort_dist,
+        neighbor_dist=cfg.orca_neighbor_dist, time_horizon=cfg.orca_time_horizon,
+        time_horizon_obst=cfg.orca_time_horizon_obst,
+        orca_pad=cfg.orca_radius_pad + cfg.orca_safety_space,
+        success_reward=cfg.success_reward, collision_penalty=cfg.collision_penalty,
+        discomfort_factor=cfg.discomfort_penalty_factor, potential_factor=cfg.potential_factor,
+        pred_radius=cfg.prediction_radius, sentinel=cfg.sentinel,
+        intrusion=cfg.compute_intrusion,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Per-episode random numbers: xoshiro256** seeded by splitmix64(seed).
+
+_U1, _U5, _U7, _U9, _U11, _U17, _U45 = (np.uint64(v) for v in (1, 5, 7, 9, 11, 17, 45))
+_U64 = np.uint64(64)
+
+
+@nb.njit(cache=True, inline="always")
+def _rotl(x, k):
+    return (x << k) | (x >> (_U64 - k))
+
+
+@nb.njit(cache=True)
+def _splitmix64(x):
+    z = x + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31)), x + np.uint64(0x9E3779B97F4A7C15)
+
+
+@nb.njit(cache=True)
+def seed_rng(state, seed):
+    x = np.uint64(seed)
+    for i in range(4):
+        z, x = _splitmix64(x)
+        state[i] = z
+
+
+@nb.njit(cache=True, inline="always")
+def uniform(s):
+    """A float64 in [0, 1) from the generator state ``s`` (4 uint64), advancing it."""
+    result = _rotl(s[1] * _U5, _U7) * _U9
+    t = s[1] << _U17
+    s[2] ^= s[0]
+    s[3] ^= s[1]
+    s[1] ^= s[2]
+    s[0] ^= s[3]
+    s[2] ^= t
+    s[3] = _rotl(s[3], _U45)
+    return np.float64(result >> _U11) * (1.0 / 9007199254740992.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Crowd generation (CrowdNav++ generate_robot / generate_circle_crossing_human /
+# update_human_goals_randomly).
+
+
+@nb.njit(cache=True)
+def _clear_of_agents(x, y, r_self, skip, rp, rg, p, hp, hg, hr, n_check):
+    """True if (x, y) is at least ``r_self + r_other + discomfort`` from every agent's position
+    and goal (robot, then humans ``0..n_check-1`` except ``skip``); strict ``<`` rejects."""
+    d_min = r_self + p.robot_radius + p.discomfort
+    if (x - rp[0]) ** 2 + (y - rp[1]) ** 2 < d_min * d_min:
+        return False
+    if (x - rg[0]) ** 2 + (y - rg[1]) ** 2 < d_min * d_min:
+        return False
+    for j in range(n_check):
+        if j == skip:
+            continue
+        d_min = r_self + hr[j] + p.discomfort
+        if (x - hp[j, 0]) ** 2 + (y - hp[j, 1]) ** 2 < d_min * d_min:
+            return False
+        if (x - hg[j, 0]) ** 2 + (y - hg[j, 1]) ** 2 < d_min * d_min:
+            return False
+    return True
+
+
+@nb.njit(cache=True)
+def _spawn_human(i, n_check, rng, rp, rg, hp, hv, hg, hr, hvp, p):
+    """Generate human ``i`` (attributes, start on the circle, antipodal goal, zero velocity),
+    rejection-sampled against the robot and humans ``0..n_check-1`` (itself included: a respawn
+    is checked against the human it replaces, as in CrowdNav++)."""
+    if p.randomize:
+        hvp[i] = p.vpref_lo + (p.vpref_hi - p.vpref_lo) * uniform(rng)
+        hr[i] = p.radius_lo + (p.radius_hi - p.radius_lo) * uniform(rng)
+    else:
+        hvp[i] = p.human_vpref
+        hr[i] = p.human_radius
+    for _ in range(_MAX_REJECTIONS):
+        a = uniform(rng) * 2.0 * math.pi
+        x = p.circle_radius * math.cos(a) + uniform(rng) * p.start_noise
+        y = p.circle_radius * math.sin(a) + uniform(rng) * p.start_noise
+        if _clear_of_agents(x, y, hr[i], -1, rp, rg, p, hp, hg, hr, n_check):
+            break
+    hp[i, 0], hp[i, 1] = x, y
+    hg[i, 0], hg[i, 1] = -x, -y
+    hv[i, 0], hv[i, 1] = 0.0, 0.0
+
+
+@nb.njit(cache=True)
+def _change_goals(rng, rp, rg, hp, hg, hr, hvp, p):
+    """Random goal change: each human, with probability ``goal_prob``, gets a new goal on the
+    circle with centred noise ``(U - 0.5) * v_pref``, clear of the robot and the other humans."""
+    n = p.n_humans
+    for i in range(n):
+        if uniform(rng) <= p.goal_prob:
+            v_pref = hvp[i] if hvp[i] != 0.0 else 1.0
+            for _ in range(_MAX_REJECTIONS):
+                a = uniform(rng) * 2.0 * math.pi
+                x = p.circle_radius * math.cos(a) + (uniform(rng) - 0.5) * v_pref
+                y = p.circle_radius * math.sin(a) + (uniform(rng) - 0.5) * v_pref
+                if _clear_of_agents(x, y, hr[i], i, rp, rg, p, hp, hg, hr, n):
+                    break
+            hg[i, 0], hg[i, 1] = x, y
+
+
+# --------------------------------------------------------------------------------------------
+# One environment: reset, observation, humans' ORCA, step.
+
+
+class Scratch(NamedTuple):
+    """Per-environment work arrays for the ORCA solver and the intrusion look-ahead."""
+
+    lines: np.ndarray  # (K + N + 1, 4)
+    proj: np.ndarray  # (K + N + 1, 4)
+    nb_idx: np.ndarray  # (N + 1,)
+    nb_dist: np.ndarray
+    ob_idx: np.ndarray  # (K,)
+    ob_dist: np.ndarray
+    radii: np.ndarray  # (N + 1,) ORCA radii
+    new_vel: np.ndarray  # (N, 2)
+    fut_pos: np.ndarray  # (N, 2)
+    fut_vel: np.ndarray  # (N, 2)
+    fut_new: np.ndarray  # (N, 2)
+    agents_pos: np.ndarray  # (N + 1, 2) robot ORCA scene
+    agents_vel: np.ndarray
+    order: np.ndarray  # (N,) observation sort
+
+
+@nb.njit(cache=True)
+def _make_scratch(n, k):
+    m = n + 1
+    return Scratch(np.empty((k + m, 4)), np.empty((k + m, 4)), np.empty(m, np.int64),
+                   np.empty(m), np.empty(max(k, 1), np.int64), np.empty(max(k, 1)), np.empty(m),
+                   np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2)),
+                   np.empty((m, 2)), np.empty((m, 2)), np.empty(n, np.int64))
+
+
+@nb.njit(cache=True, inline="always")
+def _pref_velocity(dx, dy):
+    """Unit-speed preferred velocity toward the goal (not scaled by v_pref), slowing inside 1 m."""
+    d = math.sqrt(dx * dx + dy * dy)
+    if d > 1.0:
+        return dx / d, dy / d
+    return dx, dy
+
+
+@nb.njit(cache=True)
+def _humans_orca(hp, hv, hg, hr, hvp, all_idx, p, obst, s, out):
+    """New velocities of all humans: each solves ORCA as agent 0 among all other humans (the
+    robot is invisible to them; no walls)."""
+    n = p.n_humans
+    for j in range(n):
+        s.radii[j] = hr[j] + p.orca_pad
+    for i in range(n):
+        px_, py_ = _pref_velocity(hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1])
+        out[i, 0], out[i, 1] = compute_new_velocity(
+            i, hp, hv, s.radii, all_idx, n, hvp[i], px_, py_, p.neighbor_dist, n,
+            p.time_horizon, p.time_horizon_obst, p.dt, obst[0][:0], obst[1][:0], obst[2][:0],
+            obst[3][:0], obst[4][:0], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
+
+
+@nb.njit(cache=True)
+def _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pred, visible, obs,
+             s):
+    """Write observation ``obs[b]`` from the current state and update the robot's memory.
+
+    Layout (269 floats for N = 20, L = 5): robot ``px, py, radius, gx, gy, v_pref, theta``;
+    robot ``vx, vy``; N rows of ``(x_k, y_k) for k = 0..L`` relative to the robot (current and
+    constant-velocity predicted positions, velocity as last observed, one step stale), visible
+    rows first sorted by distance, the others filled with the sentinel; N mask values.
+    """
+    n, L = p.n_humans, p.n_pred
+    o = obs[b]
+    rx, ry = rp[b, 0], rp[b, 1]
+    o[0], o[1], o[2] = rx, ry, p.robot_radius
+    o[3], o[4], o[5], o[6] = rg[b, 0], rg[b, 1], p.robot_vpref, ROBOT_THETA
+    o[7], o[8] = rv[b, 0], rv[b, 1]
+    n_vis = 0
+    for i in range(n):
+        dx, dy = hp[b, i, 0] - rx, hp[b, i, 1] - ry
+        dist = math.sqrt(dx * dx + dy * dy)
+        vis = dist - p.robot_radius - hr[b, i] <= p.sensing
+        visible[b, i] = vis
+        for k in range(L + 1):
+            # Prediction with the velocity last observed (before this observation's update).
+            pred[b, i, k, 0] = hp[b, i, 0] + k * p.dt * seen_vel[b, i, 0]
+            pred[b, i, k, 1] = hp[b, i, 1] + k * p.dt * seen_vel[b, i, 1]
+        if vis:
+            # Insertion sort of visible humans by distance (stable: ties keep index order).
+            s.nb_dist[n_vis] = dist
+            q = n_vis
+            while q > 0 and dist < s.nb_dist[q - 1]:
+                s.nb_dist[q] = s.nb_dist[q - 1]
+                s.order[q] = s.order[q - 1]
+                q -= 1
+            s.nb_dist[q] = dist
+            s.order[q] = i
+            n_vis += 1
+    for i in range(n):
+        if visible[b, i]:
+            seen[b, i] = True
+            seen_pos[b, i, 0], seen_pos[b, i, 1] = hp[b, i, 0], hp[b, i, 1]
+            seen_vel[b, i, 0], seen_vel[b, i, 1] = hv[b, i, 0], hv[b, i, 1]
+            seen_r[b, i] = hr[b, i]
+    row_len = 2 * (L + 1)
+    base = ROBOT_DIM + 2
+    mask_base = base + n * row_len
+    for q in range(n):
+        off = base + q * row_len
+        if q < n_vis:
+            i = s.order[q]
+            for k in range(L + 1):
+                o[off + 2 * k] = pred[b, i, k, 0] - rx
+                o[off + 2 * k + 1] = pred[b, i, k, 1] - ry
+            o[mask_base + q] = 1.0
+        else:
+            for c in range(row_len):
+                o[off + c] = p.sentinel
+            o[mask_base + q] = 0.0
+
+
+@nb.njit(cache=True)
+def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen,
+               seen_pos, seen_vel, seen_r, pred, visible, obs, s):
+    r = rng[b]
+    seed_rng(r, seed)
+    a = p.arena
+    for _ in range(_MAX_REJECTIONS):
+        px = -a + 2 * a * uniform(r)
+        py = -a + 2 * a * uniform(r)
+        gx = -a + 2 * a * uniform(r)
+        gy = -a + 2 * a * uniform(r)
+        if (px - gx) ** 2 + (py - gy) ** 2 >= p.min_start_goal ** 2:
+            break
+    rp[b, 0], rp[b, 1], rg[b, 0], rg[b, 1] = px, py, gx, gy
+    rv[b, 0], rv[b, 1] = 0.0, 0.0
+    for i in range(p.n_humans):
+        _spawn_human(i, i, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], p)
+    step_count[b] = 0
+    potential[b] = -math.sqrt((px - gx) ** 2 + (py - gy) ** 2)
+    seen[b, :] = False
+    seen_vel[b, :, :] = 0.0
+    seen_pos[b, :, :] = 0.0
+    seen_r[b, :] = 0.0
+    _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
+
+
+@nb.njit(cache=True)
+def _step_one(b, action, p, obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg,
+              hr, hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, out_reward,
+              out_event, out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob, s):
+    n, L, dt = p.n_humans, p.n_pred, p.dt
+    # (1) Robot action, clipped by norm to v_pref; humans' ORCA from current states.
+    ax, ay = action[0], action[1]
+    speed = math.sqrt(ax * ax + ay * ay)
+    if speed > p.robot_vpref:
+        ax, ay = ax * (p.robot_vpref / speed), ay * (p.robot_vpref / speed)
+    _humans_orca(hp[b], hv[b], hg[b], hr[b], hvp[b], all_idx, p, obst, s, s.new_vel)
+
+    # (2) Reward and termination on the pre-move positions.
+    rx, ry = rp[b, 0], rp[b, 1]
+    t = step_count[b] * dt
+    dmin = math.inf
+    collided = False
+    for i in range(n):
+        d = math.sqrt((hp[b, i, 0] - rx) ** 2 + (hp[b, i, 1] - ry) ** 2) - hr[b, i] - p.robot_radius
+        if d < 0.0:
+            collided = True
+        if d < dmin:
+            dmin = d
+    wall = p.bounded and (abs(rx) + p.robot_radius >= p.arena or abs(ry) + p.robot_radius >= p.arena)
+    goal_dist = math.sqrt((rx - rg[b, 0]) ** 2 + (ry - rg[b, 1]) ** 2)
+    event = RUNNING
+    if t >= p.time_limit - 1.0:
+        reward, event = 0.0, TIMEOUT
+    elif collided:
+        reward, event = p.collision_penalty, HUMAN_COLLISION
+    elif wall:
+        reward, event = p.collision_penalty, WALL_COLLISION
+    elif goal_dist < p.robot_radius:
+        reward, event = p.success_reward, SUCCESS
+    elif dmin < p.discomfort:
+        reward = (dmin - p.discomfort) * p.discomfort_factor * dt
+    else:
+        reward = p.potential_factor * (-goal_dist - potential[b])
+        potential[b] = -goal_dist
+    # Prediction penalty: worst k over visible humans' predicted positions in the observation.
+    worst = 0.0
+    thresh_sq = (p.robot_radius + p.pred_radius) ** 2
+    for i in range(n):
+        if visible[b, i]:
+            for k in range(1, L + 1):
+                if (pred[b, i, k, 0] - rx) ** 2 + (pred[b, i, k, 1] - ry) ** 2 < thresh_sq:
+                    worst = min(worst, p.collision_penalty / 2.0 ** (k + 1))
+                    break  # smaller k is worse; later k cannot beat it for this human
+    out_reward[b] = reward + worst
+    out_event[b] = event
+    out_dmin[b] = dmin
+    out_oob[b] = abs(rx) > p.arena or abs(ry) > p.arena
+
+    # Intrusion: robot within r + 0.3 of a currently visible human's TRUE position k = 1..L steps
+    # ahead (ORCA look-ahead of the humans from their current states, no goal changes).
+    out_intrusion[b] = False
+    out_intr_dist[b] = math.inf
+    if p.intrusion:
+        for i in range(n):
+            s.fut_pos[i, 0] = hp[b, i, 0] + s.new_vel[i, 0] * dt
+            s.fut_pos[i, 1] = hp[b, i, 1] + s.new_vel[i, 1] * dt
+            s.fut_vel[i, 0], s.fut_vel[i, 1] = s.new_vel[i, 0], s.new_vel[i, 1]
+        for k in range(1, L + 1):
+            if k > 1:
+                _humans_orca(s.fut_pos, s.fut_vel, hg[b], hr[b], hvp[b], all_idx, p, obst, s,
+                             s.fut_new)
+                for i in range(n):
+                    s.fut_vel[i, 0], s.fut_vel[i, 1] = s.fut_new[i, 0], s.fut_new[i, 1]
+                    s.fut_pos[i, 0] += s.fut_new[i, 0] * dt
+                    s.fut_pos[i, 1] += s.fut_new[i, 1] * dt
+            for i in range(n):
+                d_now = math.sqrt((hp[b, i, 0] - rx) ** 2 + (hp[b, i, 1] - ry) ** 2)
+                if d_now - p.robot_radius - hr[b, i] <= p.sensing:
+                    c = math.sqrt((s.fut_pos[i, 0] - rx) ** 2 + (s.fut_pos[i, 1] - ry) ** 2)
+                    if c < out_intr_dist[b]:
+                        out_intr_dist[b] = c
+        out_intrusion[b] = out_intr_dist[b] < p.robot_radius + p.pred_radius
+
+    # (3) Move everyone; (4) observe.
+    rp[b, 0] = rx + ax * dt
+    rp[b, 1] = ry + ay * dt
+    rv[b, 0], rv[b, 1] = ax, ay
+    out_distance[b] = 0.0 if event != RUNNING else math.sqrt(ax * ax + ay * ay) * dt
+    for i in range(n):
+        hv[b, i, 0], hv[b, i, 1] = s.new_vel[i, 0], s.new_vel[i, 1]
+        hp[b, i, 0] += s.new_vel[i, 0] * dt
+        hp[b, i, 1] += s.new_vel[i, 1] * dt
+    step_count[b] += 1
+    _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
+
+    # (5) Random goal changes when due, then respawn of humans that reached their goal.
+    r = rng[b]
+    if step_count[b] % p.goal_every == 0:
+        _change_goals(r, rp[b], rg[b], hp[b], hg[b], hr[b], hvp[b], p)
+    for i in range(n):
+        if (hg[b, i, 0] - hp[b, i, 0]) ** 2 + (hg[b, i, 1] - hp[b, i, 1]) ** 2 < hr[b, i] ** 2:
+            _spawn_human(i, n, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], p)
+
+
+@nb.njit(cache=True)
+def _orca_robot_one(b, p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, s, out):
+    """The ORCA robot: agent 0 among the humans it has seen (their last observed states), with
+    half responsibility, and the walls as static obstacles in the bounded variant."""
+    n = p.n_humans
+    s.agents_pos[0, 0], s.agents_pos[0, 1] = rp[b, 0], rp[b, 1]
+    s.agents_vel[0, 0], s.agents_vel[0, 1] = rv[b, 0], rv[b, 1]
+    s.radii[0] = p.robot_radius + p.orca_pad
+    n_cand = 0
+    for i in range(n):
+        s.agents_pos[i + 1, 0], s.agents_pos[i + 1, 1] = seen_pos[b, i, 0], seen_pos[b, i, 1]
+        s.agents_vel[i + 1, 0], s.agents_vel[i + 1, 1] = seen_vel[b, i, 0], seen_vel[b, i, 1]
+        s.radii[i + 1] = seen_r[b, i] + p.orca_pad
+        if seen[b, i]:
+            s.order[n_cand] = i + 1
+            n_cand += 1
+    px_, py_ = _pref_velocity(rg[b, 0] - rp[b, 0], rg[b, 1] - rp[b, 1])
+    out[b, 0], out[b, 1] = compute_new_velocity(
+        0, s.agents_pos, s.agents_vel, s.radii, s.order, n_cand, p.robot_vpref, px_, py_,
+        p.neighbor_dist, n, p.time_horizon, p.time_horizon_obst, p.dt, obst[0], obst[1], obst[2],
+        obst[3], obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
+
+
+# --------------------------------------------------------------------------------------------
+# Batched entry points: one parallel loop over environments. Small batches skip the thread
+# pool and call the per-environment kernels from Python (see CrowdSim).
+
+
+@nb.njit(cache=True, parallel=True)
+def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen,
+               seen_pos, seen_vel, seen_r, pred, visible, obs):
+    for q in nb.prange(idx.shape[0]):
+        s = _make_scratch(p.n_humans, 0)
+        _reset_one(idx[q], seeds[q], p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
+                   hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
+
+
+@nb.njit(cache=True, parallel=True)
+def step_many(actions, p, obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
+              hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, out_reward, out_event,
+              out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob):
+    for b in nb.prange(actions.shape[0]):
+        s = _make_scratch(p.n_humans, obst[0].shape[0])
+        _step_one(b, actions[b], p, obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv,
+                  hg, hr, hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, out_reward,
+                  out_event, out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob, s)
+
+
+@nb.njit(cache=True, parallel=True)
+def orca_robot_many(p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, out):
+    for b in nb.prange(rp.shape[0]):
+        s = _make_scratch(p.n_humans, obst[0].shape[0])
+        _orca_robot_one(b, p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, s, out)
+
+
+PARALLEL_MIN_BATCH = 16  # below this, a Python loop over the per-env kernels is faster
+
+
+class StepResult(NamedTuple):
+    """Per-environment outputs of one step (arrays of length B)."""
+
+    reward: np.ndarray  # float64
+    event: np.ndarray  # int64, see EVENT_NAMES; RUNNING while the episode goes on
+    min_distance: np.ndarray  # closest human surface distance before the move (m)
+    intrusion: np.ndarray  # bool: robot inside r + 0.3 of a visible human's true future position
+    intrusion_distance: np.ndarray  # closest such centre distance over k = 1..L (m); inf if no
+    # visible human or compute_intrusion is off
+    distance: np.ndarray  # robot path length added by this step (m), 0 on the final step
+    out_of_bounds: np.ndarray  # bool: robot centre outside the workspace before the move
+
+
+class CrowdSim:
+    """B crowd-navigation environments as arrays. The engine under the gymnasium envs.
+
+    ``reset(seeds, idx)`` starts episodes ``seeds`` in slots ``idx``; ``step(actions)`` advances
+    every slot one step (a slot whose episode ended keeps stepping until reset: the caller owns
+    episode boundaries). ``obs`` is the ``(B, obs_dim)`` float32 observation.
+    """
+
+    def __init__(self, config: CrowdSimConfig, num_envs: int = 1):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.config = config.resolve()
+        self.params = make_params(self.config)
+        self.num_envs = B = num_envs
+        n, L = self.config.num_humans, self.config.prediction_steps
+        polygons = [bounding_box(self.config.arena_size)] if self.config.bounded else []
+        self.obstacles = make_obstacles(polygons)
+        self._all_idx = np.arange(n, dtype=np.int64)
+        self.rng = np.zeros((B, 4), np.uint64)
+        self.step_count = np.zeros(B, np.int64)
+        self.potential = np.zeros(B)
+        self.robot_pos, self.robot_vel, self.robot_goal = (np.zeros((B, 2)) for _ in range(3))
+        self.human_pos, self.human_vel, self.human_goal = (np.zeros((B, n, 2)) for _ in range(3))
+        self.human_radius, self.human_vpref = np.zeros((B, n)), np.zeros((B, n))
+        self.seen = np.zeros((B, n), np.bool_)
+        self.seen_pos, self.seen_vel = np.zeros((B, n, 2)), np.zeros((B, n, 2))
+        self.seen_radius = np.zeros((B, n))
+        self.pred = np.zeros((B, n, L + 1, 2))
+        self.visible = np.zeros((B, n), np.bool_)
+        self.obs = np.zeros((B, self.config.obs_dim), np.float32)
+        self.seeds = np.full(B, -1, np.int64)
+        self._parallel = B >= PARALLEL_MIN_BATCH
+        self._scratch = _make_scratch(n, self.obstacles[0].shape[0])
+
+    def _state(self):
+        return (self.rng, self.step_count, self.potential, self.robot_pos, self.robot_vel,
+                self.robot_goal, self.human_pos, self.human_vel, self.human_goal, self.human_radius,
+                self.human_vpref, self.seen, self.seen_pos, self.seen_vel, self.seen_radius,
+                self.pred, self.visible, self.obs)
+
+    def reset(self, seeds, idx=None) -> np.ndarray:
+        """Start episode ``seeds[q]`` in slot ``idx[q]`` (all slots when ``idx`` is None)."""
+        idx = np.arange(self.num_envs) if idx is None else np.asarray(idx, np.int64).reshape(-1)
+        seeds = np.asarray(seeds, np.int64).reshape(-1)
+        if seeds.shape != idx.shape:
+            raise ValueError(f"need one seed per reset slot: {seeds.shape[0]} seeds, {idx.shape[0]} slots")
+        if np.any(seeds < 0):
+            raise ValueError("episode seeds must be non-negative")
+        if np.any((idx < 0) | (idx >= self.num_envs)):
+            raise ValueError(f"slot index out of range [0, {self.num_envs})")
+        self.seeds[idx] = seeds
+        if self._parallel and len(idx) >= PARALLEL_MIN_BATCH:
+            reset_many(idx, seeds, self.params, *self._state())
+        else:
+            for b, seed in zip(idx.tolist(), seeds.tolist()):
+                _reset_one(b, seed, self.params, *self._state(), self._scratch)
+        return self.obs
+
+    def check_actions(self, actions) -> np.ndarray:
+        """Validate ``(B, 2)`` world-frame velocities (m/s); non-finite values are an error."""
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.num_envs, 2):
+            raise ValueError(f"actions must have shape ({self.num_envs}, 2) (vx, vy in m/s), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1))
+            raise ValueError(f"non-finite action (NaN or inf) in env slot(s) {bad.tolist()}")
+        return np.ascontiguousarray(a)
+
+    def step(self, actions) -> StepResult:
+        a = self.check_actions(actions)
+        B = self.num_envs
+        res = StepResult(np.empty(B), np.empty(B, np.int64), np.empty(B), np.empty(B, np.bool_),
+                         np.empty(B), np.empty(B), np.empty(B, np.bool_))
+        outs = (res.reward, res.event, res.min_distance, res.intrusion, res.intrusion_distance,
+                res.distance, res.out_of_bounds)
+        if self._parallel:
+            step_many(a, self.params, self.obstacles, self._all_idx, *self._state(), *outs)
+        else:
+            for b in range(B):
+                _step_one(b, a[b], self.params, self.obstacles, self._all_idx, *self._state(), *outs,
+                          self._scratch)
+        return res
+
+    def orca_actions(self) -> np.ndarray:
+        """The ORCA robot's velocities ``(B, 2)`` for the current observations."""
+        out = np.empty((self.num_envs, 2))
+        args = (self.params, self.obstacles, self.robot_pos, self.robot_vel, self.robot_goal,
+                self.seen, self.seen_pos, self.seen_vel, self.seen_radius)
+        if self._parallel:
+            orca_robot_many(*args, out)
+        else:
+            for b in range(self.num_envs):
+                _orca_robot_one(b, *args, self._scratch, out)
+        return out
+
+    def straight_actions(self) -> np.ndarray:
+        """Full speed toward the goal, ignoring humans (a floor for learned policies)."""
+        d = self.robot_goal - self.robot_pos
+        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        return d / np.maximum(norm, 1e-12) * self.config.robot_v_pref
