@@ -24,6 +24,10 @@ _COMMON = dict(
     arena_size=6.0,  # both: 12 x 12 m workspace, robot start/goal ~ U(-6, 6)^2
     robot_v_pref=1.0,  # both: robot max speed (m/s)
     robot_min_start_goal_dist=8.0,  # CrowdNav++ generate_robot: |start - goal| >= 8
+    # Not in either source: start/goal ~ U(-(arena - margin), arena - margin). With 0 (faithful),
+    # a Bounded episode whose start lies within one robot radius of a wall is a wall collision at
+    # its first step (about 1 in 9 episodes with the paper preset).
+    robot_spawn_margin=0.0,
     human_radius=0.3,  # CrowdNav++ humans.radius (used when attributes are not randomized)
     human_v_pref=1.0,  # CrowdNav++ humans.v_pref
     human_radius_range=(0.3, 0.5),  # CrowdNav++ sample_random_attributes
@@ -87,6 +91,7 @@ class CrowdSimConfig:
     robot_radius: float | None = None
     robot_v_pref: float | None = None
     robot_min_start_goal_dist: float | None = None
+    robot_spawn_margin: float | None = None
     sensing_range: float | None = None
     randomize_attributes: bool | None = None
     human_radius: float | None = None
@@ -155,7 +160,9 @@ class CrowdSimConfig:
         steps = self.goal_change_interval / self.dt
         if abs(steps - round(steps)) > 1e-9:
             raise ValueError("goal_change_interval must be a multiple of dt")
-        if self.robot_min_start_goal_dist >= 2 * math.sqrt(2) * self.arena_size:
+        if not 0 <= self.robot_spawn_margin < self.arena_size:
+            raise ValueError(f"robot_spawn_margin must be in [0, arena_size), got {self.robot_spawn_margin}")
+        if self.robot_min_start_goal_dist >= 2 * math.sqrt(2) * (self.arena_size - self.robot_spawn_margin):
             raise ValueError("robot_min_start_goal_dist cannot be met inside the arena")
 
     # Derived quantities, in steps.

@@ -53,6 +53,7 @@ class Params(NamedTuple):
     robot_radius: float
     robot_vpref: float
     min_start_goal: float
+    spawn_margin: float
     sensing: float
     randomize: bool
     human_radius: float
@@ -86,7 +87,8 @@ def make_params(cfg: CrowdSimConfig) -> Params:
     return Params(
         n_humans=cfg.num_humans, bounded=cfg.bounded, arena=cfg.arena_size,
         robot_radius=cfg.robot_radius, robot_vpref=cfg.robot_v_pref,
-        min_start_goal=cfg.robot_min_start_goal_dist, sensing=cfg.sensing_range,
+        min_start_goal=cfg.robot_min_start_goal_dist, spawn_margin=cfg.robot_spawn_margin,
+        sensing=cfg.sensing_range,
         randomize=cfg.randomize_attributes, human_radius=cfg.human_radius,
         human_vpref=cfg.human_v_pref, radius_lo=cfg.human_radius_range[0],
         radius_hi=cfg.human_radius_range[1], vpref_lo=cfg.human_v_pref_range[0],
@@ -331,7 +333,7 @@ def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, h
                seen_pos, seen_vel, seen_r, pred, visible, obs, s):
     r = rng[b]
     seed_rng(r, seed)
-    a = p.arena
+    a = p.arena - p.spawn_margin
     for _ in range(_MAX_REJECTIONS):
         px = -a + 2 * a * uniform(r)
         py = -a + 2 * a * uniform(r)
@@ -578,6 +580,15 @@ class CrowdSim:
         else:
             for b, seed in zip(idx.tolist(), seeds.tolist()):
                 _reset_one(b, seed, self.params, *self._state(), self._scratch)
+        return self.obs
+
+    def observe(self) -> np.ndarray:
+        """Rebuild every slot's observation from the current state, as at the end of a step (the
+        robot's memory of observed humans is updated too). For hand-built states."""
+        for b in range(self.num_envs):
+            _observe(b, self.params, self.robot_pos, self.robot_vel, self.robot_goal, self.human_pos,
+                     self.human_vel, self.human_radius, self.seen, self.seen_pos, self.seen_vel,
+                     self.seen_radius, self.pred, self.visible, self.obs, self._scratch)
         return self.obs
 
     def check_actions(self, actions) -> np.ndarray:

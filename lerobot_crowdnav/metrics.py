@@ -1,0 +1,108 @@
+"""Navigation metrics from per-episode records (the episode records of ``CrowdNavVectorEnv``).
+
+- SR, CR (human + wall), TR: shares of episodes ending in success, collision, timeout.
+- NT (s): mean navigation time of successful episodes, ``length * dt`` (CrowdNav's
+  ``global_time`` at the end of the episode, the final step included).
+- PL (m): mean robot path length per episode, summed over the robot's own moves inside the
+  episode. CrowdNav++'s evaluation adds the jump to the next episode's start position (its
+  vectorised env has already reset when the length is read); this one does not.
+- ITR: per episode, the share of steps in which the robot is within ``r + 0.3`` of a visible
+  human's true position 1..5 steps ahead; averaged over episodes (a fraction; tables show %).
+- SD (m): mean over all intrusion steps of all episodes of the closest such centre distance.
+- OOB: share of successful episodes whose robot centre left the workspace at some step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from .sim import EVENT_NAMES
+
+
+@dataclass
+class EpisodeRecord:
+    seed: int
+    event: str  # success | human_collision | wall_collision | timeout
+    steps: int
+    path_length: float  # m
+    intrusion_steps: int
+    intrusion_distance_sum: float  # m, over intrusion steps
+    out_of_bounds: bool
+    episode_return: float
+
+    @classmethod
+    def from_final_info(cls, final_info: dict, b: int) -> EpisodeRecord:
+        return cls(
+            seed=int(final_info["seed"][b]),
+            event=EVENT_NAMES[int(final_info["event"][b])],
+            steps=int(final_info["length"][b]),
+            path_length=float(final_info["path_length"][b]),
+            intrusion_steps=int(final_info["intrusion_steps"][b]),
+            intrusion_distance_sum=float(final_info["intrusion_distance_sum"][b]),
+            out_of_bounds=bool(final_info["out_of_bounds"][b]),
+            episode_return=float(final_info["return"][b]),
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _mean(values) -> float:
+    values = list(values)
+    return sum(values) / len(values) if values else math.nan
+
+
+def compute_metrics(records: list[EpisodeRecord], dt: float) -> dict[str, float]:
+    """Aggregate metrics; rates are fractions in [0, 1], times in s, distances in m.
+
+    A mean over an empty set (NT with no success, SD with no intrusion) is NaN.
+    """
+    if not records:
+        raise ValueError("no episodes to aggregate")
+    n = len(records)
+    success = [r for r in records if r.event == "success"]
+    count = {name: sum(r.event == name for r in records) for name in EVENT_NAMES[1:]}
+    intrusion_steps = sum(r.intrusion_steps for r in records)
+    return {
+        "sr": count["success"] / n,
+        "cr": (count["human_collision"] + count["wall_collision"]) / n,
+        "cr_human": count["human_collision"] / n,
+        "cr_wall": count["wall_collision"] / n,
+        "tr": count["timeout"] / n,
+        "nt": _mean(r.steps * dt for r in success),
+        "pl": _mean(r.path_length for r in records),
+        "itr": _mean(r.intrusion_steps / r.steps for r in records),
+        "sd": (sum(r.intrusion_distance_sum for r in records) / intrusion_steps
+               if intrusion_steps else math.nan),
+        "oob": _mean(float(r.out_of_bounds) for r in success),
+        "mean_return": _mean(r.episode_return for r in records),
+    }
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+
+def table_columns(bounded: bool) -> list[str]:
+    base = ["SR", "NT", "PL", "ITR", "SD"]
+    return base if bounded else base + ["CR", "TR", "OOB"]
+
+
+def markdown_row(metrics: dict[str, float], bounded: bool, name: str | None = None) -> str:
+    """``| SR | NT | PL | ITR | SD |`` (+ CR, TR, OOB for the original variant); rates in %."""
+    cells = {
+        "SR": _fmt(100 * metrics["sr"], 1), "NT": _fmt(metrics["nt"]), "PL": _fmt(metrics["pl"]),
+        "ITR": _fmt(100 * metrics["itr"]), "SD": _fmt(metrics["sd"]),
+        "CR": _fmt(100 * metrics["cr"], 1), "TR": _fmt(100 * metrics["tr"], 1),
+        "OOB": _fmt(100 * metrics["oob"], 1),
+    }
+    values = ([name] if name is not None else []) + [cells[c] for c in table_columns(bounded)]
+    return "| " + " | ".join(values) + " |"
+
+
+def markdown_header(bounded: bool, name: str | None = None) -> str:
+    cols = ([name] if name is not None else []) + [
+        {"SR": "SR (%)", "NT": "NT (s)", "PL": "PL (m)", "ITR": "ITR (%)", "SD": "SD (m)",
+         "CR": "CR (%)", "TR": "TR (%)", "OOB": "OOB (%)"}[c] for c in table_columns(bounded)]
+    return "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols)
