@@ -1,0 +1,88 @@
+"""Metrics on hand-built episode records, and the intrusion test on a hand-built state."""
+
+import math
+
+import numpy as np
+import pytest
+
+from lerobot_crowdnav.config import CrowdSimConfig
+from lerobot_crowdnav.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
+from lerobot_crowdnav.sim import CrowdSim
+
+
+def rec(seed, event, steps, path, intr=0, intr_sum=0.0, oob=False):
+    return EpisodeRecord(seed, event, steps, path, intr, intr_sum, oob, 0.0)
+
+
+def test_metrics_on_hand_built_records():
+    records = [
+        rec(0, "success", 40, 10.0, intr=4, intr_sum=1.6, oob=True),
+        rec(1, "success", 60, 14.0),
+        rec(2, "human_collision", 20, 5.0, intr=10, intr_sum=3.0),
+        rec(3, "wall_collision", 1, 0.0),
+        rec(4, "timeout", 197, 30.0, intr=0),
+    ]
+    m = compute_metrics(records, dt=0.25)
+    assert m["sr"] == 0.4 and m["cr"] == 0.4 and m["tr"] == 0.2
+    assert m["cr_human"] == 0.2 and m["cr_wall"] == 0.2
+    assert m["nt"] == pytest.approx((40 + 60) / 2 * 0.25)
+    assert m["pl"] == pytest.approx((10 + 14 + 5 + 0 + 30) / 5)
+    assert m["itr"] == pytest.approx((4 / 40 + 0 + 10 / 20 + 0 + 0) / 5)
+    assert m["sd"] == pytest.approx((1.6 + 3.0) / 14)
+    assert m["oob"] == 0.5  # one of the two successes left the workspace
+    row = markdown_row(m, bounded=False)
+    assert row == "| 40.0 | 12.50 | 11.80 | 12.00 | 0.33 | 40.0 | 20.0 | 50.0 |"
+    assert markdown_header(bounded=True).splitlines() == [
+        "| SR (%) | NT (s) | PL (m) | ITR (%) | SD (m) |", "|---|---|---|---|---|"]
+
+
+def test_metrics_without_success_or_intrusion_are_nan_not_errors():
+    m = compute_metrics([rec(0, "timeout", 197, 3.0)], dt=0.25)
+    assert math.isnan(m["nt"]) and math.isnan(m["sd"]) and math.isnan(m["oob"])
+    assert "n/a" in markdown_row(m, bounded=True)
+    with pytest.raises(ValueError):
+        compute_metrics([], dt=0.25)
+
+
+def parked(cfg):
+    sim = CrowdSim(cfg, 1)
+    sim.reset([9])
+    n = sim.config.num_humans
+    sim.human_pos[0] = 1000.0 + 3.0 * np.arange(2 * n).reshape(n, 2)
+    sim.human_goal[0] = sim.human_pos[0] + 1000.0
+    sim.human_vel[0] = 0.0
+    sim.robot_pos[0] = [0.0, 0.0]
+    sim.robot_goal[0] = [0.0, 5.0]
+    sim.potential[0] = -5.0
+    return sim
+
+
+@pytest.mark.parametrize("start, intrudes, closest", [(1.5, True, 0.25), (1.8, False, 0.55)])
+def test_intrusion_uses_true_future_positions(start, intrudes, closest):
+    sim = parked(CrowdSimConfig(task="CrowdNav-v0"))
+    # A human at rest walking toward the robot (which it does not see) at 1 m/s: its true
+    # positions k steps ahead are start - 0.25 k.
+    sim.human_pos[0, 0] = [start, 0.0]
+    sim.human_goal[0, 0] = [-20.0, 0.0]
+    sim.human_vpref[0, 0] = 1.0
+    sim.observe()
+    res = sim.step(np.zeros((1, 2)))
+    assert bool(res.intrusion[0]) is intrudes
+    assert res.intrusion_distance[0] == pytest.approx(closest)
+    # The observation's constant-velocity prediction saw the human at rest: no prediction penalty.
+    assert res.reward[0] == pytest.approx(0.0)
+
+
+def test_intrusion_ignores_humans_out_of_sensing_range_and_can_be_off():
+    cfg = CrowdSimConfig(task="CrowdNav-v0", sensing_range=1.0)
+    sim = parked(cfg)
+    sim.human_pos[0, 0] = [1.5, 0.0]  # surface distance 1.5 - 0.2 - r > 1.0: invisible
+    sim.human_goal[0, 0] = [-20.0, 0.0]
+    sim.observe()
+    res = sim.step(np.zeros((1, 2)))
+    assert not res.intrusion[0] and math.isinf(res.intrusion_distance[0])
+    sim = parked(CrowdSimConfig(task="CrowdNav-v0", compute_intrusion=False))
+    sim.human_pos[0, 0] = [1.5, 0.0]
+    sim.human_goal[0, 0] = [-20.0, 0.0]
+    res = sim.step(np.zeros((1, 2)))
+    assert not res.intrusion[0]
