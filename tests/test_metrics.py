@@ -76,7 +76,9 @@ def test_intrusion_uses_true_future_positions(start, intrudes, closest):
 def test_intrusion_ignores_humans_out_of_sensing_range_and_can_be_off():
     cfg = CrowdSimConfig(task="CrowdNav-v0", sensing_range=1.0)
     sim = parked(cfg)
-    sim.human_pos[0, 0] = [1.5, 0.0]  # surface distance 1.5 - 0.2 - r > 1.0: invisible
+    sim.human_pos[0, 0] = [1.6, 0.0]  # surface distance 1.6 - 0.2 - 0.3 > 1.0: invisible, yet
+    sim.human_radius[0, 0] = 0.3  # its true position 5 steps ahead (0.35 m) would intrude
+    sim.human_vpref[0, 0] = 1.0
     sim.human_goal[0, 0] = [-20.0, 0.0]
     sim.observe()
     res = sim.step(np.zeros((1, 2)))
