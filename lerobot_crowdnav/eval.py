@@ -106,7 +106,7 @@ def run_episodes(env: CrowdNavVectorEnv, policy: str, split: str, n_episodes: in
     return [records[s] for s in seeds]
 
 
-def _machine() -> str:
+def machine_description() -> str:
     model = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -139,7 +139,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "env": sim_cfg.to_dict(),
         "markdown": markdown_row(metrics, sim_cfg.bounded),
         "wall_time_s": elapsed,
-        "machine": _machine(),
+        "machine": machine_description(),
         "episodes": [r.to_dict() for r in records],
     }
     out.mkdir(parents=True, exist_ok=True)

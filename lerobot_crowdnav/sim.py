@@ -477,15 +477,17 @@ def _orca_robot_one(b, p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, s,
 
 
 # --------------------------------------------------------------------------------------------
-# Batched entry points: one parallel loop over environments. Small batches skip the thread
-# pool and call the per-environment kernels from Python (see CrowdSim).
+# Batched entry points: one parallel loop over environments for steps. Small batches skip the
+# thread pool and call the per-environment kernels from Python (see CrowdSim).
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)
 def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen,
                seen_pos, seen_vel, seen_r, pred, visible, obs):
-    for q in nb.prange(idx.shape[0]):
-        s = _make_scratch(p.n_humans, 0)
+    # Serial: a reset costs a few microseconds, less than waking the thread pool for the handful
+    # of slots an autoreset touches.
+    s = _make_scratch(p.n_humans, 0)
+    for q in range(idx.shape[0]):
         _reset_one(idx[q], seeds[q], p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
                    hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
 
@@ -575,11 +577,7 @@ class CrowdSim:
         if np.any((idx < 0) | (idx >= self.num_envs)):
             raise ValueError(f"slot index out of range [0, {self.num_envs})")
         self.seeds[idx] = seeds
-        if self._parallel and len(idx) >= PARALLEL_MIN_BATCH:
-            reset_many(idx, seeds, self.params, *self._state())
-        else:
-            for b, seed in zip(idx.tolist(), seeds.tolist()):
-                _reset_one(b, seed, self.params, *self._state(), self._scratch)
+        reset_many(idx, seeds, self.params, *self._state())
         return self.obs
 
     def observe(self) -> np.ndarray:

@@ -1,0 +1,110 @@
+"""Simulator throughput: ``lerobot-crowdnav-bench`` (also ``python -m lerobot_crowdnav.benchmark``).
+
+Measures env-steps/s (one env-step = one environment advanced by dt) through the public APIs:
+the native batched env (``CrowdNavVectorEnv``, autoreset and info included) for each batch size
+with random actions (training mode: no intrusion look-ahead), random actions with the intrusion
+metrics, and the built-in ORCA robot; and the single-env gymnasium API (``gym.make`` + ``step``).
+Each figure is the median of ``--repeats`` timed runs after a warm-up.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import gymnasium as gym
+import numpy as np
+
+from .config import CrowdSimConfig
+from .envs import CrowdNavVectorEnv
+from .eval import machine_description
+
+
+@dataclass
+class BenchmarkConfig:
+    # Variant benchmarked: CrowdNav-v0 or BoundedCrowdNav-v0.
+    task: str = "BoundedCrowdNav-v0"
+    # Simulator preset: paper or crowdnavpp.
+    preset: str = "paper"
+    # Batch sizes of the native batched env.
+    batch_sizes: list[int] = field(default_factory=lambda: [1, 64, 1024])
+    # Timed runs per figure; the median is reported.
+    repeats: int = 5
+    # Env-steps per timed run (divided among the batch), roughly.
+    steps_per_run: int = 100_000
+    # Also write the table and raw timings as JSON here.
+    output: Path | None = None
+
+
+def _time_vector(cfg: BenchmarkConfig, batch: int, mode: str, seed: int) -> float:
+    intrusion = mode == "random + intrusion"
+    env = CrowdNavVectorEnv(batch, robot_policy="orca" if mode == "orca robot" else None,
+                            config=CrowdSimConfig(task=cfg.task, preset=cfg.preset,
+                                                  compute_intrusion=intrusion))
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    steps = max(20, cfg.steps_per_run // batch // (4 if intrusion else 1))
+    actions = rng.uniform(-1, 1, size=(steps, batch, 2))
+    for t in range(5):  # warm-up (compilation is cached on disk after the first run)
+        env.step(actions[t])
+    start = time.perf_counter()
+    for t in range(steps):
+        env.step(actions[t])
+    return steps * batch / (time.perf_counter() - start)
+
+
+def _time_single(cfg: BenchmarkConfig, seed: int) -> float:
+    env = gym.make(f"lerobot_crowdnav/{cfg.task}", preset=cfg.preset, compute_intrusion=False)
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    steps = max(200, cfg.steps_per_run // 20)
+    actions = rng.uniform(-1, 1, size=(steps, 2))
+    start = time.perf_counter()
+    for t in range(steps):
+        _, _, terminated, truncated, _ = env.step(actions[t])
+        if terminated or truncated:
+            env.reset()
+    return steps / (time.perf_counter() - start)
+
+
+def run(cfg: BenchmarkConfig) -> dict:
+    if cfg.repeats < 1 or cfg.steps_per_run < 1 or any(b < 1 for b in cfg.batch_sizes):
+        raise ValueError("repeats, steps_per_run and batch sizes must be >= 1")
+    CrowdSimConfig(task=cfg.task, preset=cfg.preset).resolve()
+    rows = []
+    for batch in cfg.batch_sizes:
+        for mode in ("random", "random + intrusion", "orca robot"):
+            rates = [_time_vector(cfg, batch, mode, seed=r) for r in range(cfg.repeats)]
+            rows.append({"api": "CrowdNavVectorEnv", "batch": batch, "mode": mode,
+                         "median_steps_per_s": statistics.median(rates), "runs": rates})
+            print(f"B={batch:5d} {mode:20s} {statistics.median(rates):12,.0f} env-steps/s", flush=True)
+    rates = [_time_single(cfg, seed=r) for r in range(cfg.repeats)]
+    rows.append({"api": "gym.make (single env)", "batch": 1, "mode": "random",
+                 "median_steps_per_s": statistics.median(rates), "runs": rates})
+    print(f"single-env gym API  random {statistics.median(rates):12,.0f} env-steps/s")
+    lines = ["| API | B | actions | env-steps/s (median) |", "|---|---|---|---|"]
+    lines += [f"| {r['api']} | {r['batch']} | {r['mode']} | {r['median_steps_per_s']:,.0f} |" for r in rows]
+    table = "\n".join(lines)
+    result = {"machine": machine_description(), "task": cfg.task, "preset": cfg.preset,
+              "repeats": cfg.repeats, "rows": rows, "markdown": table}
+    print(f"\n{cfg.task} ({cfg.preset}) on {result['machine']}, median of {cfg.repeats} runs:\n{table}")
+    if cfg.output:
+        cfg.output.parent.mkdir(parents=True, exist_ok=True)
+        cfg.output.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=BenchmarkConfig, args=argv)
+    try:
+        run(cfg)
+    except ValueError as e:
+        raise SystemExit(f"error: {e}") from None
+
+
+if __name__ == "__main__":
+    main()

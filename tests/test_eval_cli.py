@@ -1,0 +1,159 @@
+"""The evaluation CLI, ``lerobot_crowdnav.eval`` (``lerobot-crowdnav-eval``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+from PIL import Image
+
+from lerobot_crowdnav.config import split_seeds
+from lerobot_crowdnav.eval import EvalSettings, main
+
+TASKS = ("BoundedCrowdNav-v0", "CrowdNav-v0")
+POLICIES = ("orca", "straight")
+METRIC_KEYS = {"sr", "cr", "tr", "nt", "pl", "itr", "sd", "oob", "n_episodes", "env", "episodes"}
+EVENTS = {"success", "human_collision", "wall_collision", "timeout"}
+
+
+def _eval(out, *args, n_episodes=12, batch_size=5, policy="orca", task="BoundedCrowdNav-v0") -> dict:
+    main([f"--policy.type={policy}", f"--env.task={task}", f"--eval.n_episodes={n_episodes}",
+          f"--eval.batch_size={batch_size}", f"--output_dir={out}", *args])
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _row_cells(line: str) -> list[str]:
+    assert line.startswith("|") and line.endswith("|"), line
+    return [c.strip() for c in line[1:-1].split("|")]
+
+
+@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("policy", POLICIES)
+def test_eval_writes_metrics_and_prints_row(tmp_path, capsys, policy, task):
+    out = tmp_path / "eval"
+    result = _eval(out, policy=policy, task=task)
+
+    assert METRIC_KEYS <= set(result)
+    assert result["n_episodes"] == 12
+    assert result["policy"] == policy and result["split"] == "test"
+    assert result["env"]["task"] == task and result["env"]["preset"] == "paper"
+    assert result["env"]["num_humans"] == 20  # the resolved config, not the None placeholders
+
+    episodes = result["episodes"]
+    assert [e["seed"] for e in episodes] == split_seeds("test", 12)
+    assert all(e["event"] in EVENTS for e in episodes)
+    assert all(1 <= e["steps"] <= 197 for e in episodes)
+    for key in ("sr", "cr", "tr", "itr", "oob"):
+        assert 0.0 <= result[key] <= 1.0, (key, result[key])
+    assert result["sr"] + result["cr"] + result["tr"] == pytest.approx(1.0)
+    n = len(episodes)
+    assert result["sr"] == pytest.approx(sum(e["event"] == "success" for e in episodes) / n)
+    assert result["tr"] == pytest.approx(sum(e["event"] == "timeout" for e in episodes) / n)
+    assert result["pl"] == pytest.approx(sum(e["path_length"] for e in episodes) / n)
+    successes = [e for e in episodes if e["event"] == "success"]
+    assert successes, "expected at least one success in 12 episodes"
+    assert result["nt"] == pytest.approx(sum(e["steps"] for e in successes) * 0.25 / len(successes))
+    assert result["pl"] > 0 and math.isfinite(result["sd"])
+    if task == "CrowdNav-v0":
+        assert not any(e["event"] == "wall_collision" for e in episodes)
+    if policy == "straight":
+        # Full speed (1 m/s, dt 0.25 s) in a straight line: 0.25 m a step, arriving exactly.
+        assert all(e["path_length"] <= 0.25 * e["steps"] + 1e-6 for e in episodes)
+
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")]
+    assert len(lines) == 3, lines  # header, separator, row
+    header, row = _row_cells(lines[0]), _row_cells(lines[2])
+    n_cols = 5 if task == "BoundedCrowdNav-v0" else 8
+    assert len(header) == n_cols and len(row) == n_cols
+    assert header[0] == "SR (%)"
+    assert lines[2] == result["markdown"]
+    assert float(row[0]) == pytest.approx(100 * result["sr"], abs=0.05)
+    assert float(row[2]) == pytest.approx(result["pl"], abs=0.005)
+
+
+def test_eval_results_do_not_depend_on_batch_size(tmp_path, capsys):
+    small = _eval(tmp_path / "b3", batch_size=3, task="CrowdNav-v0")
+    large = _eval(tmp_path / "b12", batch_size=12, task="CrowdNav-v0")
+    assert small["episodes"] == large["episodes"]
+    for key in ("sr", "cr", "tr", "nt", "pl", "itr", "sd", "oob"):
+        assert small[key] == large[key], key
+    assert small["markdown"] == large["markdown"]
+    # batch_size > n_episodes is capped, not an error, and gives the same episodes.
+    capped = _eval(tmp_path / "b64", batch_size=64, task="CrowdNav-v0")
+    assert capped["episodes"] == small["episodes"]
+
+
+def test_existing_output_dir_is_refused_then_overwritten(tmp_path, capsys):
+    out = tmp_path / "eval"
+    out.mkdir()
+    metrics = out / "metrics.json"
+    metrics.write_text('{"sentinel": true}')
+    before = metrics.stat().st_mtime_ns
+
+    with pytest.raises(SystemExit) as exc:
+        _eval(out, n_episodes=3, batch_size=3, policy="straight")
+    message = str(exc.value.code)
+    assert "--overwrite" in message and "metrics.json" in message
+    assert metrics.read_text() == '{"sentinel": true}'
+    assert metrics.stat().st_mtime_ns == before
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]
+
+    result = _eval(out, "--overwrite=true", n_episodes=3, batch_size=3, policy="straight")
+    assert "sentinel" not in result
+    assert result["n_episodes"] == 3
+    assert [e["seed"] for e in result["episodes"]] == split_seeds("test", 3)
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]  # no leftover temp file
+
+
+@pytest.mark.parametrize("arg, message", [
+    ("--eval.split=bogus", "--eval.split must be one of"),
+    ("--eval.n_episodes=0", "--eval.n_episodes must be in [1, 500]"),
+    ("--eval.n_episodes=501", "--eval.n_episodes must be in [1, 500]"),
+    ("--eval.batch_size=0", "--eval.batch_size must be >= 1"),
+    ("--eval.n_videos=-1", "--eval.n_videos must be >= 0"),
+    ("--env.task=Nope-v0", "unknown task 'Nope-v0'"),
+    ("--env.preset=nope", "unknown preset 'nope'"),
+])
+def test_bad_input_exits_with_clear_message(tmp_path, arg, message):
+    out = tmp_path / "eval"
+    with pytest.raises(SystemExit) as exc:
+        main(["--policy.type=straight", f"--output_dir={out}", arg])
+    text = exc.value.code
+    assert isinstance(text, str), f"expected a message, got exit code {text!r}"
+    assert text.startswith("error: ") and message in text, text
+    assert not out.exists()  # nothing written
+
+
+def test_val_split_takes_val_seeds(tmp_path, capsys):
+    result = _eval(tmp_path / "val", "--eval.split=val", n_episodes=2, batch_size=2, policy="straight")
+    assert [e["seed"] for e in result["episodes"]] == split_seeds("val", 2)
+    with pytest.raises(SystemExit) as exc:
+        _eval(tmp_path / "val101", "--eval.split=val", n_episodes=101, policy="straight")
+    assert "[1, 100]" in str(exc.value.code)
+
+
+def test_module_help_mentions_every_setting():
+    res = subprocess.run([sys.executable, "-m", "lerobot_crowdnav.eval", "--help"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    for f in dataclasses.fields(EvalSettings):
+        assert f"--eval.{f.name}" in res.stdout, f.name
+    for flag in ("--policy.type {orca,straight}", "--env.task", "--env.preset", "--output_dir", "--overwrite"):
+        assert flag in res.stdout, flag
+
+
+def test_n_videos_writes_gif(tmp_path, capsys):
+    out = tmp_path / "eval"
+    result = _eval(out, "--eval.n_videos=1", n_episodes=2, batch_size=2, policy="straight")
+    seed = split_seeds("test", 1)[0]
+    gifs = sorted((out / "videos").iterdir())
+    assert [g.name for g in gifs] == [f"straight_seed{seed}.gif"]
+    with Image.open(gifs[0]) as im:
+        assert im.format == "GIF"
+        assert im.size == (512, 512)
+        # One frame for the start and one per step of the first episode.
+        assert im.n_frames == result["episodes"][0]["steps"] + 1
