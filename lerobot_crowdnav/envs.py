@@ -34,6 +34,7 @@ Version history: v0, first release.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import gymnasium as gym
@@ -248,10 +249,12 @@ class CrowdNavVectorEnv(VectorEnv):
 
         return render_frame(self.sim, b)
 
-    def call(self, name: str, *args, **kwargs) -> tuple:
-        """Like ``SyncVectorEnv.call``: one result per slot (lerobot's rollout uses it)."""
+    def call(self, name: str, *args, **kwargs):
+        """Like ``SyncVectorEnv.call``: one result per slot (lerobot's rollout uses it).
+
+        ``call("render")`` is lazy: only the slots indexed are drawn (lerobot keeps a few)."""
         if name == "render":
-            return tuple(self.render_slot(b) for b in range(self.num_envs))
+            return _LazyFrames(self)
         value = getattr(self, name)
         if callable(value):
             value = value(*args, **kwargs)
@@ -259,6 +262,21 @@ class CrowdNavVectorEnv(VectorEnv):
 
     def get_attr(self, name: str) -> tuple:
         return (getattr(self, name),) * self.num_envs
+
+
+class _LazyFrames(Sequence):
+    """Frames of every slot, drawn when indexed."""
+
+    def __init__(self, env: CrowdNavVectorEnv):
+        self._env = env
+
+    def __len__(self) -> int:
+        return self._env.num_envs
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self._env.render_slot(b) for b in range(*index.indices(len(self)))]
+        return self._env.render_slot(range(len(self))[index])
 
 
 class CrowdNavEnv(gym.Env):

@@ -11,6 +11,7 @@ fractions, seconds, metres), ``n_episodes``, the resolved env config and one rec
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import time
@@ -106,6 +107,17 @@ def run_episodes(env: CrowdNavVectorEnv, policy: str, split: str, n_episodes: in
     return [records[s] for s in seeds]
 
 
+def _json_safe(value):
+    """Strict JSON: undefined means (NaN, e.g. NT without a success) become null."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def machine_description() -> str:
     model = platform.processor() or platform.machine()
     try:
@@ -144,7 +156,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     }
     out.mkdir(parents=True, exist_ok=True)
     tmp = metrics_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=2, default=float))
+    tmp.write_text(json.dumps(_json_safe(result), indent=2, allow_nan=False))
     tmp.replace(metrics_path)
     if cfg.eval.n_videos:
         from .render import record_episode

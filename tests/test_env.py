@@ -313,3 +313,16 @@ def test_render_rgb_array():
     frame = env.render()
     assert frame.shape == (512, 512, 3) and frame.dtype == np.uint8
     assert frame.std() > 5  # something is drawn
+
+
+def test_vector_render_call_draws_only_requested_slots(monkeypatch):
+    env = CrowdNavVectorEnv(8, render_mode="rgb_array")
+    env.reset(seed=0)
+    drawn = []
+    original = env.render_slot
+    monkeypatch.setattr(env, "render_slot", lambda b: drawn.append(b) or original(b))
+    frames = env.call("render")
+    assert len(frames) == 8 and drawn == []
+    stacked = np.stack(frames[:2])  # what lerobot's rollout does
+    assert stacked.shape == (2, 512, 512, 3) and drawn == [0, 1]
+    assert frames[-1].shape == (512, 512, 3) and drawn[-1] == 7

@@ -157,3 +157,17 @@ def test_n_videos_writes_gif(tmp_path, capsys):
         assert im.size == (512, 512)
         # One frame for the start and one per step of the first episode.
         assert im.n_frames == result["episodes"][0]["steps"] + 1
+
+
+def test_undefined_metrics_are_null_in_strict_json(tmp_path, capsys):
+    """No success (every episode times out after 2 s): NT and OOB are undefined -> null."""
+    out = tmp_path / "timeouts"
+    main(["--policy.type=orca", "--env.task=CrowdNav-v0", "--env.time_limit=2", "--eval.n_episodes=3",
+          f"--output_dir={out}"])
+
+    def refuse(token):
+        raise AssertionError(f"non-standard JSON constant {token}")
+
+    result = json.loads((out / "metrics.json").read_text(), parse_constant=refuse)
+    assert result["tr"] == 1.0 and result["nt"] is None and result["oob"] is None
+    assert "n/a" in result["markdown"]
