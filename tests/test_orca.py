@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from lerobot_crowdnav.config import CrowdSimConfig
@@ -99,11 +99,15 @@ scene = st.integers(2, 12).flatmap(lambda n: st.tuples(
 
 @settings(max_examples=300, deadline=None)
 @given(scene)
+@example(([(0.0, 0.0)] * 3, [(0.0, 0.0), (1.0, 0.0), (0.125, 1e-05)], [(0.0, 0.0)] * 3, [0.5] * 3,
+          [1.0] * 3))  # coincident agents (found by hypothesis)
 def test_new_velocity_is_finite_and_within_max_speed(s):
     pos, vel, pref, radii, vmax = (np.array(x, float) for x in s)
     out = new_velocities(pos, vel, radii, vmax, pref)
     assert np.all(np.isfinite(out))
-    assert np.all(np.linalg.norm(out, axis=1) <= vmax * (1 + 1e-9) + 1e-12)
+    # RVO2 does not clamp its result: in degenerate scenes (coincident agents, lines parallel
+    # within RVO_EPSILON) rounding leaves it up to ~1e-7 relative outside the max-speed disc.
+    assert np.all(np.linalg.norm(out, axis=1) <= vmax * (1 + 1e-6))
 
 
 def _violation(lines, v):
