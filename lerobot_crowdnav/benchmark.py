@@ -3,7 +3,8 @@
 Measures env-steps/s (one env-step = one environment advanced by dt) through the public APIs:
 the native batched env (``CrowdNavVectorEnv``, autoreset and info included) for each batch size
 with random actions (training mode: no intrusion look-ahead), random actions with the intrusion
-metrics, and the built-in ORCA robot; and the single-env gymnasium API (``gym.make`` + ``step``).
+metrics, and the built-in ORCA robot; and the single-env gymnasium API (``gym.make`` + ``step``)
+with random actions and in test mode (ORCA robot, intrusion metrics on).
 Each figure is the median of ``--repeats`` timed runs after a warm-up.
 """
 
@@ -57,15 +58,19 @@ def _time_vector(cfg: BenchmarkConfig, batch: int, mode: str, seed: int) -> floa
     return steps * batch / (time.perf_counter() - start)
 
 
-def _time_single(cfg: BenchmarkConfig, seed: int) -> float:
-    env = gym.make(f"lerobot_crowdnav/{cfg.task}", preset=cfg.preset, compute_intrusion=False)
+def _time_single(cfg: BenchmarkConfig, mode: str, seed: int) -> float:
+    """``mode``: "random" (training mode) or "orca robot + intrusion" (test mode, the setting
+    of CrowdNav++'s own ORCA evaluation)."""
+    test_mode = mode != "random"
+    env = gym.make(f"lerobot_crowdnav/{cfg.task}", preset=cfg.preset, compute_intrusion=test_mode)
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
-    steps = max(200, cfg.steps_per_run // 20)
+    steps = max(200, cfg.steps_per_run // 20 // (3 if test_mode else 1))
     actions = rng.uniform(-1, 1, size=(steps, 2))
     start = time.perf_counter()
     for t in range(steps):
-        _, _, terminated, truncated, _ = env.step(actions[t])
+        action = env.unwrapped.expert_action("orca") if test_mode else actions[t]
+        _, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             env.reset()
     return steps / (time.perf_counter() - start)
@@ -82,10 +87,11 @@ def run(cfg: BenchmarkConfig) -> dict:
             rows.append({"api": "CrowdNavVectorEnv", "batch": batch, "mode": mode,
                          "median_steps_per_s": statistics.median(rates), "runs": rates})
             print(f"B={batch:5d} {mode:20s} {statistics.median(rates):12,.0f} env-steps/s", flush=True)
-    rates = [_time_single(cfg, seed=r) for r in range(cfg.repeats)]
-    rows.append({"api": "gym.make (single env)", "batch": 1, "mode": "random",
-                 "median_steps_per_s": statistics.median(rates), "runs": rates})
-    print(f"single-env gym API  random {statistics.median(rates):12,.0f} env-steps/s")
+    for mode in ("random", "orca robot + intrusion"):
+        rates = [_time_single(cfg, mode, seed=r) for r in range(cfg.repeats)]
+        rows.append({"api": "gym.make (single env)", "batch": 1, "mode": mode,
+                     "median_steps_per_s": statistics.median(rates), "runs": rates})
+        print(f"single env   {mode:20s} {statistics.median(rates):12,.0f} env-steps/s", flush=True)
     lines = ["| API | B | actions | env-steps/s (median) |", "|---|---|---|---|"]
     lines += [f"| {r['api']} | {r['batch']} | {r['mode']} | {r['median_steps_per_s']:,.0f} |" for r in rows]
     table = "\n".join(lines)
