@@ -45,7 +45,7 @@ _COMMON = dict(
     orca_time_horizon_obst=5.0,
     orca_safety_space=0.15,  # added to every ORCA radius, with the 0.01 pad below
     orca_radius_pad=0.01,
-    orca_others_max_speed=1.0,  # max speed assumed for the other agents (does not affect agent 0)
+    # (CrowdNav++ gives the other agents max speed 1; it never enters agent 0's solve, so no field.)
     # Reward (CrowdNav++ config.reward and CrowdSimPred.calc_reward).
     success_reward=10.0,
     collision_penalty=-20.0,
@@ -111,7 +111,6 @@ class CrowdSimConfig:
     orca_time_horizon_obst: float | None = None
     orca_safety_space: float | None = None
     orca_radius_pad: float | None = None
-    orca_others_max_speed: float | None = None
     success_reward: float | None = None
     collision_penalty: float | None = None
     discomfort_penalty_factor: float | None = None

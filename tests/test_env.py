@@ -326,3 +326,16 @@ def test_vector_render_call_draws_only_requested_slots(monkeypatch):
     stacked = np.stack(frames[:2])  # what lerobot's rollout does
     assert stacked.shape == (2, 512, 512, 3) and drawn == [0, 1]
     assert frames[-1].shape == (512, 512, 3) and drawn[-1] == 7
+
+
+def test_gym_make_imports_the_package_itself_with_module_syntax():
+    """gymnasium 1.x has no plugin entry points; ``module:id`` makes it import the package."""
+    import subprocess
+    import sys
+
+    code = ("import gymnasium as gym; "
+            "env = gym.make('lerobot_crowdnav:lerobot_crowdnav/CrowdNav-v0'); "
+            "print(env.reset(seed=0)[0].shape)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "(269,)"

@@ -171,3 +171,19 @@ def test_undefined_metrics_are_null_in_strict_json(tmp_path, capsys):
     result = json.loads((out / "metrics.json").read_text(), parse_constant=refuse)
     assert result["tr"] == 1.0 and result["nt"] is None and result["oob"] is None
     assert "n/a" in result["markdown"]
+
+
+@pytest.mark.parametrize("name", ["bounded_orca", "bounded_straight", "original_orca",
+                                  "original_straight", "original_crowdnavpp_orca"])
+def test_shipped_eval_configs_parse(name):
+    import draccus
+
+    from lerobot_crowdnav.eval import EvalConfig
+
+    cfg = draccus.parse(EvalConfig, config_path=f"configs/eval/{name}.yaml", args=[])
+    sim = cfg.env.resolve()
+    assert sim.bounded == name.startswith("bounded")
+    assert cfg.policy.name == name.rsplit("_", 1)[1]
+    assert cfg.eval.n_episodes == 500 and cfg.eval.split == "test"
+    if "crowdnavpp" in name:
+        assert sim.preset == "crowdnavpp" and sim.randomize_attributes is False

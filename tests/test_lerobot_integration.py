@@ -290,3 +290,14 @@ def test_lerobot_eval_policy_runs_on_crowdnav():
     assert agg["pc_success"] == pytest.approx(100 / 3)
     assert agg["avg_sum_reward"] == pytest.approx(np.mean([r["return"] for r in ref]), abs=1e-4)
     assert "video_paths" not in info
+
+
+def test_dataset_stack_prints_no_library_traceback():
+    """torchcodec (which needs FFmpeg) is kept out of the install: lerobot's video-backend probe,
+    run whenever it builds a dataset, must not print a traceback."""
+    code = ("from lerobot.utils.import_utils import get_safe_default_video_backend; "
+            "import lerobot.datasets.lerobot_dataset; print(get_safe_default_video_backend())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr + out.stdout
+    assert out.stdout.strip().splitlines()[-1] == "pyav"
