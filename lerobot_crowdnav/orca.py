@@ -185,6 +185,19 @@ def agent_orca_line(px, py, vx, vy, radius, ox, oy, ovx, ovy, oradius, inv_time_
 
 
 @_jit
+def insert_sorted(keys, values, slot, key, value):
+    """Insertion step of RVO2's neighbour lists: put ``(key, value)`` into the ascending
+    ``keys[:slot + 1]`` by shifting larger keys up from ``slot`` (stable for equal keys)."""
+    k = slot
+    while k > 0 and key < keys[k - 1]:
+        keys[k] = keys[k - 1]
+        values[k] = values[k - 1]
+        k -= 1
+    keys[k] = key
+    values[k] = value
+
+
+@_jit
 def _push_line(lines, n, px, py, dx, dy):
     lines[n, 0] = px
     lines[n, 1] = py
@@ -197,6 +210,15 @@ def _push_line(lines, n, px, py, dx, dy):
 def _normalized(x, y):
     n = math.sqrt(x * x + y * y)
     return x / n, y / n
+
+
+@_jit
+def _tangent_legs(rx, ry, dist_sq, radius):
+    """Left and right leg directions (unit) from the agent, tangent to the disc of ``radius``
+    around the relative position ``(rx, ry)`` at squared distance ``dist_sq``."""
+    leg = math.sqrt(dist_sq - radius * radius)
+    return ((rx * leg - ry * radius) / dist_sq, (rx * radius + ry * leg) / dist_sq,
+            (rx * leg + ry * radius) / dist_sq, (-rx * radius + ry * leg) / dist_sq)
 
 
 @_jit
@@ -229,13 +251,7 @@ def obstacle_orca_lines(px, py, vx, vy, radius, time_horizon_obst, max_speed, ob
             d_sq = (px - ax - r * ex) ** 2 + (py - ay - r * ey) ** 2
         if d_sq >= range_sq:
             continue
-        k = n_nb
-        while k > 0 and d_sq < dist[k - 1]:
-            dist[k] = dist[k - 1]
-            order[k] = order[k - 1]
-            k -= 1
-        dist[k] = d_sq
-        order[k] = e
+        insert_sorted(dist, order, n_nb, d_sq, e)
         n_nb += 1
 
     inv_th = 1.0 / time_horizon_obst
@@ -287,31 +303,19 @@ def obstacle_orca_lines(px, py, vx, vy, radius, time_horizon_obst, max_speed, ob
             if not obst_convex[o1]:
                 continue
             o2 = o1
-            leg1 = math.sqrt(dist_sq1 - radius_sq)
-            llx = (rp1x * leg1 - rp1y * radius) / dist_sq1
-            lly = (rp1x * radius + rp1y * leg1) / dist_sq1
-            rlx = (rp1x * leg1 + rp1y * radius) / dist_sq1
-            rly = (-rp1x * radius + rp1y * leg1) / dist_sq1
+            llx, lly, rlx, rly = _tangent_legs(rp1x, rp1y, dist_sq1, radius)
         elif s > 1.0 and dist_sq_line <= radius_sq:
             if not obst_convex[o2]:
                 continue
             o1 = o2
-            leg2 = math.sqrt(dist_sq2 - radius_sq)
-            llx = (rp2x * leg2 - rp2y * radius) / dist_sq2
-            lly = (rp2x * radius + rp2y * leg2) / dist_sq2
-            rlx = (rp2x * leg2 + rp2y * radius) / dist_sq2
-            rly = (-rp2x * radius + rp2y * leg2) / dist_sq2
+            llx, lly, rlx, rly = _tangent_legs(rp2x, rp2y, dist_sq2, radius)
         else:
             if obst_convex[o1]:
-                leg1 = math.sqrt(dist_sq1 - radius_sq)
-                llx = (rp1x * leg1 - rp1y * radius) / dist_sq1
-                lly = (rp1x * radius + rp1y * leg1) / dist_sq1
+                llx, lly, _, _ = _tangent_legs(rp1x, rp1y, dist_sq1, radius)
             else:
                 llx, lly = -obst_unit_dir[o1, 0], -obst_unit_dir[o1, 1]
             if obst_convex[o2]:
-                leg2 = math.sqrt(dist_sq2 - radius_sq)
-                rlx = (rp2x * leg2 + rp2y * radius) / dist_sq2
-                rly = (-rp2x * radius + rp2y * leg2) / dist_sq2
+                _, _, rlx, rly = _tangent_legs(rp2x, rp2y, dist_sq2, radius)
             else:
                 rlx, rly = obst_unit_dir[o1, 0], obst_unit_dir[o1, 1]
 
@@ -402,13 +406,7 @@ def compute_new_velocity(ego, positions, velocities, radii, candidates, n_candid
         if d_sq < range_sq:
             if n_nb < max_neighbors:
                 n_nb += 1
-            k = n_nb - 1
-            while k > 0 and d_sq < nb_dist[k - 1]:
-                nb_dist[k] = nb_dist[k - 1]
-                nb_idx[k] = nb_idx[k - 1]
-                k -= 1
-            nb_dist[k] = d_sq
-            nb_idx[k] = j
+            insert_sorted(nb_dist, nb_idx, n_nb - 1, d_sq, j)  # when full, the farthest goes
             if n_nb == max_neighbors:
                 range_sq = nb_dist[n_nb - 1]
 

@@ -32,7 +32,7 @@ import numba as nb
 import numpy as np
 
 from .config import CrowdSimConfig
-from .orca import bounding_box, compute_new_velocity, make_obstacles
+from .orca import bounding_box, compute_new_velocity, insert_sorted, make_obstacles
 
 # Episode events (``info["event"]``).
 RUNNING, SUCCESS, HUMAN_COLLISION, WALL_COLLISION, TIMEOUT = 0, 1, 2, 3, 4
@@ -295,15 +295,8 @@ def _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pre
             pred[b, i, k, 0] = hp[b, i, 0] + k * p.dt * seen_vel[b, i, 0]
             pred[b, i, k, 1] = hp[b, i, 1] + k * p.dt * seen_vel[b, i, 1]
         if vis:
-            # Insertion sort of visible humans by distance (stable: ties keep index order).
-            s.nb_dist[n_vis] = dist
-            q = n_vis
-            while q > 0 and dist < s.nb_dist[q - 1]:
-                s.nb_dist[q] = s.nb_dist[q - 1]
-                s.order[q] = s.order[q - 1]
-                q -= 1
-            s.nb_dist[q] = dist
-            s.order[q] = i
+            # Visible humans sorted by distance (stable: ties keep index order).
+            insert_sorted(s.nb_dist, s.order, n_vis, dist, i)
             n_vis += 1
     for i in range(n):
         if visible[b, i]:
