@@ -83,39 +83,73 @@ class CrowdSimConfig:
     evaluation, off for fast training rollouts.
     """
 
+    # Variant: CrowdNav-v0 (original, no boundary) or BoundedCrowdNav-v0 (walls; touching = collision).
     task: str = "BoundedCrowdNav-v0"
+    # Defaults for every unset field: paper (PDPO paper) or crowdnavpp (CrowdNav++ repository).
     preset: str = "paper"
+    # Intrusion test for ITR/SD (5-step ORCA look-ahead of the humans); off for fast training.
     compute_intrusion: bool = True
+    # Number of humans (both presets: 20).
     num_humans: int | None = None
+    # Half side of the square workspace, m (6: a 12 x 12 m arena).
     arena_size: float | None = None
+    # Robot radius, m (paper 0.2, crowdnavpp 0.3).
     robot_radius: float | None = None
+    # Robot max speed, m/s; actions are clipped to this norm (1.0).
     robot_v_pref: float | None = None
+    # Minimum robot start-goal distance, m (8).
     robot_min_start_goal_dist: float | None = None
+    # Sample robot start/goal in [-(arena - margin), arena - margin]^2, m (0: faithful).
     robot_spawn_margin: float | None = None
+    # Sensing range on surface distance, m (paper 6, crowdnavpp 5).
     sensing_range: float | None = None
+    # Per-human radius ~ human_radius_range, v_pref ~ human_v_pref_range (both presets: true).
     randomize_attributes: bool | None = None
+    # Human radius when not randomized, m (0.3).
     human_radius: float | None = None
+    # Human max speed when not randomized, m/s (1.0).
     human_v_pref: float | None = None
+    # Range of randomized human radii, m ([0.3, 0.5]).
     human_radius_range: tuple[float, float] | None = None
+    # Range of randomized human max speeds, m/s ([0.5, 1.5]).
     human_v_pref_range: tuple[float, float] | None = None
+    # Radius of the circle humans start and aim on, m (6 sqrt(2), through the corners).
     circle_radius: float | None = None
+    # Human start noise U(0, 1) * start_noise added to each coordinate, m (2).
     start_noise: float | None = None
+    # Control interval, s (0.25).
     dt: float | None = None
+    # Episode time limit, s (50; the timeout fires at t >= time_limit - 1, the 197th step).
     time_limit: float | None = None
+    # Constant-velocity prediction horizon L, steps (5).
     prediction_steps: int | None = None
+    # Period of random human goal changes, s (paper 1, crowdnavpp 5).
     goal_change_interval: float | None = None
+    # Probability that a human changes goal at each goal-change time (0.5).
     goal_change_prob: float | None = None
+    # Discomfort distance on surface distance, m (0.25).
     discomfort_dist: float | None = None
+    # ORCA neighbour distance, m (10).
     orca_neighbor_dist: float | None = None
+    # ORCA time horizon for agents, s (5).
     orca_time_horizon: float | None = None
+    # ORCA time horizon for obstacles (walls, ORCA robot only), s (5).
     orca_time_horizon_obst: float | None = None
+    # Safety space added to every ORCA radius, m (0.15).
     orca_safety_space: float | None = None
+    # Extra pad added to every ORCA radius, m (0.01).
     orca_radius_pad: float | None = None
+    # Reward for reaching the goal (10).
     success_reward: float | None = None
+    # Reward for a human or wall collision; also scales the prediction penalty (-20).
     collision_penalty: float | None = None
+    # Discomfort reward factor: (dmin - discomfort_dist) * factor * dt (10).
     discomfort_penalty_factor: float | None = None
+    # Potential (progress) reward factor (2).
     potential_factor: float | None = None
+    # Human radius used by the prediction penalty and the intrusion test, m (0.3).
     prediction_radius: float | None = None
+    # Observation value of the rows of invisible humans (15).
     sentinel: float | None = None
 
     @property
