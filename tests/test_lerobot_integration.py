@@ -127,6 +127,17 @@ def test_eval_pipeline_config_parses_crowdnav(tmp_path):
     assert cfg.job_name == "crowdnav_scratch"
 
 
+def test_train_pipeline_config_parses_crowdnav(tmp_path):
+    """lerobot-train's config takes the env for its in-training evaluation the same way."""
+    from lerobot.configs.train import TrainPipelineConfig
+
+    cfg = draccus.parse(config_class=TrainPipelineConfig,
+                        args=[*ARGS, "--dataset.repo_id=local/crowdnav", "--policy.type=diffusion",
+                              "--env_eval_freq=500", f"--output_dir={tmp_path / 'train'}"])
+    _check_parsed(cfg.env)
+    assert cfg.env_eval_freq == 500
+
+
 @pytest.mark.parametrize("arg, message", [
     ("--env.task=Nope-v0", "unknown task 'Nope-v0'"),
     ("--env.preset=nope", "unknown preset 'nope'"),
