@@ -43,7 +43,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .config import SEED_SPLITS, CrowdSimConfig
-from .sim import EVENT_NAMES, ROBOT_DIM, RUNNING, SUCCESS, CrowdSim
+from .sim import EVENT_NAMES, ROBOT_DIM, RUNNING, SUCCESS, TIMEOUT, CrowdSim
 
 ROBOT_POLICIES = ("orca", "straight")
 
@@ -188,7 +188,7 @@ class CrowdNavVectorEnv(VectorEnv):
         res = self.sim.step(actions)
         reward = res.reward
         done = res.event != RUNNING
-        truncated = res.event == 4  # TIMEOUT
+        truncated = res.event == TIMEOUT
         terminated = done & ~truncated
         self._ep_return += reward
         self._ep_len += 1
