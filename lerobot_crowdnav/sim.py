@@ -619,6 +619,12 @@ class CrowdSim:
                 _orca_robot_one(b, *args, self._scratch, out)
         return out
 
+    def clip_actions(self, actions: np.ndarray) -> np.ndarray:
+        """What ``step`` executes: each velocity scaled down to norm v_pref if faster."""
+        speed = np.linalg.norm(actions, axis=-1, keepdims=True)
+        vmax = self.config.robot_v_pref
+        return np.where(speed > vmax, actions * (vmax / np.maximum(speed, 1e-300)), actions)
+
     def straight_actions(self) -> np.ndarray:
         """Full speed toward the goal, ignoring humans (a floor for learned policies)."""
         d = self.robot_goal - self.robot_pos

@@ -1,0 +1,255 @@
+"""ORCA demonstrations as a LeRobotDataset (format v3.0, state only), and the hub-format directory.
+
+Data contract (one frame per control step, fps 4, dt = 0.25 s):
+
+==================  ==============  ==========================================================
+observation.state   float32 (269,)  the observation *before* the step (docs/simulator.md), named
+action              float32 (2,)    the executed, clipped world-frame velocity (vx, vy), m/s
+next.reward         float32         the step's reward
+next.done           bool            the step ends the episode (success, collision or timeout)
+next.success        bool            the step ends it by reaching the goal
+==================  ==============  ==========================================================
+
+plus lerobot's ``timestamp``, ``frame_index``, ``episode_index``, ``index``, ``task_index``.
+Episode metadata (``meta/episodes``) also holds the episode ``seed`` and its ``event``.
+
+Action chunks are not stored: a policy asks lerobot for them through delta timestamps
+(``action_delta_indices = range(H)``), which returns actions t..t+H-1 of the same episode with
+``action_is_pad`` set past its end.
+
+Writing goes around lerobot's per-episode ``save_episode`` (about 0.1 s an episode here: stats with
+quantiles per episode, a JSON rewrite per episode): episodes are written in blocks, one data file
+and one episodes file per block, with the per-episode statistics computed by numpy and aggregated
+by lerobot's own ``aggregate_stats``. Each block is committed by atomic renames (data, episodes,
+stats, info last), so a killed collection leaves the blocks already committed, which load.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from lerobot.datasets.compute_stats import aggregate_stats
+from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+from lerobot.datasets.feature_utils import get_hf_features_from_features
+from lerobot.datasets.io_utils import load_info, load_stats, write_info, write_stats
+
+from .config import CrowdSimConfig
+from .sim import EVENT_NAMES, ROBOT_DIM
+
+FPS = 4
+TASK = "Navigate to the goal through the crowd."
+STAT_QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
+COLLECTION_FILE = "meta/crowdnav_collection.json"  # what was collected, for --resume checks
+DATA_FILE = "data/chunk-000/file-{:03d}.parquet"
+EPISODES_FILE = "meta/episodes/chunk-000/file-{:03d}.parquet"
+
+
+def observation_names(cfg: CrowdSimConfig) -> list[str]:
+    """Column names of ``observation.state`` (positions relative to the robot, world axes)."""
+    names = ["robot_px", "robot_py", "robot_radius", "goal_x", "goal_y", "robot_v_pref", "robot_theta",
+             "robot_vx", "robot_vy"]
+    for i in range(cfg.num_humans):
+        for k in range(cfg.prediction_steps + 1):
+            names += [f"human{i:02d}_x{k}", f"human{i:02d}_y{k}"]
+    names += [f"human{i:02d}_visible" for i in range(cfg.num_humans)]
+    assert len(names) == cfg.obs_dim and ROBOT_DIM == 7
+    return names
+
+
+def features(cfg: CrowdSimConfig) -> dict:
+    return {
+        "observation.state": {"dtype": "float32", "shape": (cfg.obs_dim,), "names": observation_names(cfg)},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["vx", "vy"]},
+        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
+        "next.done": {"dtype": "bool", "shape": (1,), "names": None},
+        "next.success": {"dtype": "bool", "shape": (1,), "names": None},
+    }
+
+
+def _episode_stats(columns: dict[str, np.ndarray], bounds: np.ndarray) -> list[dict]:
+    """lerobot's per-episode statistics (min, max, mean, std, count, q01..q99) for each feature,
+    one dict per episode; ``bounds`` are the frame offsets of the episodes."""
+    out = [{} for _ in range(len(bounds) - 1)]
+    for key, values in columns.items():
+        x = values.astype(np.float64).reshape(len(values), -1)
+        for e, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+            seg = x[lo:hi]
+            stats = {"min": seg.min(0), "max": seg.max(0), "mean": seg.mean(0), "std": seg.std(0),
+                     "count": np.array([hi - lo])}
+            for name, q in zip(STAT_QUANTILES, np.quantile(seg, list(STAT_QUANTILES.values()), axis=0),
+                               strict=True):
+                stats[name] = q
+            out[e][key] = stats
+    return out
+
+
+@contextmanager
+def _no_interrupt():
+    """Defer Ctrl-C / SIGTERM until a block is committed, then raise it."""
+    received = []
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for s in handlers:
+            signal.signal(s, lambda sig, _frame: received.append(sig))
+    except ValueError:  # not the main thread: nothing to defer
+        handlers = {}
+    try:
+        yield
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        if received:
+            raise KeyboardInterrupt
+
+
+class DemonstrationWriter:
+    """Appends blocks of whole episodes to a LeRobotDataset directory (v3.0, no videos)."""
+
+    def __init__(self, root: Path, repo_id: str, sim_config: CrowdSimConfig, collection: dict,
+                 resume: bool):
+        self.root = Path(root)
+        self.repo_id = repo_id
+        self.features = features(sim_config)
+        if resume:
+            self._open_existing(collection)
+        else:
+            meta = LeRobotDatasetMetadata.create(repo_id, FPS, self.features, root=self.root, use_videos=False)
+            meta.save_episode_tasks([TASK])
+            meta.info.total_tasks = len(meta.tasks)
+            self.info = meta.info
+            self.stats = None
+            self.n_files = 0
+            (self.root / COLLECTION_FILE).write_text(json.dumps(collection, indent=2))
+        self.hf_features = get_hf_features_from_features(self.info.features)
+
+    def _open_existing(self, collection: dict) -> None:
+        path = self.root / COLLECTION_FILE
+        if not path.exists():
+            raise ValueError(f"{self.root} is not a collection made by collect_orca.py ({COLLECTION_FILE} missing)")
+        previous = _flat(json.loads(path.read_text()))
+        current = _flat(json.loads(json.dumps(collection)))
+        changed = {k: (previous.get(k), v) for k, v in current.items()
+                   if k != "episodes" and previous.get(k) != v}
+        if changed:
+            detail = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
+            raise ValueError(f"--resume with different settings than the existing collection ({detail})")
+        # Remove what an interrupted commit may have left beyond the committed blocks.
+        for tmp in sorted(self.root.rglob("*.tmp"), reverse=True):
+            shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
+        self.info = load_info(self.root)
+        self.n_files = len(self.committed_blocks())
+        for pattern in (DATA_FILE, EPISODES_FILE):
+            for extra in sorted(self.root.glob(pattern.replace("{:03d}", "*")))[self.n_files:]:
+                extra.unlink()
+        self.stats = load_stats(self.root) if self.info.total_episodes else None
+
+    def committed_blocks(self) -> list[list[dict]]:
+        """``{episode_index, seed, event, length}`` of each committed block's episodes."""
+        rows = []
+        files = sorted(self.root.glob(EPISODES_FILE.replace("{:03d}", "*")))
+        total = 0
+        for f in files:
+            table = pq.read_table(f, columns=["episode_index", "seed", "event", "length"])
+            part = table.to_pylist()
+            if total + len(part) > self.info.total_episodes:
+                break  # renamed but not recorded in info.json: not committed
+            rows.append(part)
+            total += len(part)
+        return rows
+
+    def append(self, episodes: list[dict]) -> None:
+        """Commit a block of episodes; each is ``{seed, event, obs (T, D), action (T, 2),
+        reward (T,), success (bool)}``."""
+        if not episodes:
+            return
+        lengths = np.array([len(e["action"]) for e in episodes])
+        bounds = np.concatenate([[0], np.cumsum(lengths)])
+        n_frames = int(bounds[-1])
+        first_ep = self.info.total_episodes
+        first_frame = self.info.total_frames
+        episode_index = np.repeat(np.arange(first_ep, first_ep + len(episodes)), lengths)
+        frame_index = np.concatenate([np.arange(n) for n in lengths])
+        done = np.zeros(n_frames, bool)
+        done[bounds[1:] - 1] = True
+        success = np.zeros(n_frames, bool)
+        success[bounds[1:] - 1] = [e["success"] for e in episodes]
+        columns = {
+            "observation.state": np.concatenate([e["obs"] for e in episodes]).astype(np.float32),
+            "action": np.concatenate([e["action"] for e in episodes]).astype(np.float32),
+            "next.reward": np.concatenate([e["reward"] for e in episodes]).astype(np.float32),
+            "next.done": done,
+            "next.success": success,
+            "timestamp": (frame_index / FPS).astype(np.float32),
+            "frame_index": frame_index.astype(np.int64),
+            "episode_index": episode_index.astype(np.int64),
+            "index": np.arange(first_frame, first_frame + n_frames, dtype=np.int64),
+            "task_index": np.zeros(n_frames, np.int64),
+        }
+        ep_stats = _episode_stats(columns, bounds)
+
+        def fixed(x):
+            return pa.FixedSizeListArray.from_arrays(pa.array(x.reshape(-1)), x.shape[1])
+
+        arrays = {k: (fixed(v) if v.ndim == 2 else pa.array(v)) for k, v in columns.items()}
+        data = pa.table(arrays).cast(self.hf_features.arrow_schema)
+
+        file_idx = self.n_files
+        ep_rows = {
+            "episode_index": np.arange(first_ep, first_ep + len(episodes)),
+            "tasks": [[TASK]] * len(episodes),
+            "length": lengths,
+            "data/chunk_index": np.zeros(len(episodes), np.int64),
+            "data/file_index": np.full(len(episodes), file_idx),
+            "dataset_from_index": first_frame + bounds[:-1],
+            "dataset_to_index": first_frame + bounds[1:],
+            "seed": np.array([e["seed"] for e in episodes], np.int64),
+            "event": [e["event"] for e in episodes],
+        }
+        for key in columns:
+            for stat in ep_stats[0][key]:
+                ep_rows[f"stats/{key}/{stat}"] = [s[key][stat].tolist() for s in ep_stats]
+        ep_rows["meta/episodes/chunk_index"] = np.zeros(len(episodes), np.int64)
+        ep_rows["meta/episodes/file_index"] = np.full(len(episodes), file_idx)
+        ep_table = pa.table(ep_rows)
+
+        stats = aggregate_stats(([self.stats] if self.stats else []) + ep_stats)
+        self.info.total_episodes += len(episodes)
+        self.info.total_frames += n_frames
+        self.info.splits = {"train": f"0:{self.info.total_episodes}"}
+
+        data_path = self.root / DATA_FILE.format(file_idx)
+        ep_path = self.root / EPISODES_FILE.format(file_idx)
+        for p in (data_path, ep_path):
+            p.parent.mkdir(parents=True, exist_ok=True)
+        with _no_interrupt():
+            pq.write_table(data, f"{data_path}.tmp", compression="snappy")
+            pq.write_table(ep_table, f"{ep_path}.tmp", compression="snappy")
+            tmp_root = self.root / ".commit.tmp"
+            tmp_root.mkdir(exist_ok=True)
+            write_stats(stats, tmp_root)
+            write_info(self.info, tmp_root)
+            Path(f"{data_path}.tmp").replace(data_path)
+            Path(f"{ep_path}.tmp").replace(ep_path)
+            (tmp_root / "meta/stats.json").replace(self.root / "meta/stats.json")
+            (tmp_root / "meta/info.json").replace(self.root / "meta/info.json")
+            shutil.rmtree(tmp_root)
+        self.stats = stats
+        self.n_files += 1
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def outcome_counts(events: list[str]) -> dict[str, int]:
+    return {name: sum(e == name for e in events) for name in EVENT_NAMES[1:]}

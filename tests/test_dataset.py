@@ -1,0 +1,174 @@
+"""ORCA demonstration datasets: lerobot's own loaders, chunked action targets against a replay,
+statistics for normalization, resume after a kill, refusals, and the hub-format directory."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+from lerobot.processor import NormalizerProcessorStep
+
+from lerobot_crowdnav.collect import main as collect_main
+from lerobot_crowdnav.envs import CrowdNavEnv
+from lerobot_crowdnav.hub import main as push_main
+
+REPO = "local/test_orca"
+H = 5  # PDPO's action chunk
+CHUNK = {"action": [k / 4 for k in range(H)]}
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def collect(root, *args, episodes=24, batch_size=8):
+    collect_main([f"--episodes={episodes}", f"--batch_size={batch_size}", f"--root={root}",
+                  f"--repo_id={REPO}", *args])
+
+
+@pytest.fixture(scope="module")
+def dataset_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("orca") / "ds"
+    collect(root)
+    return root
+
+
+def test_lerobot_loads_chunks_equal_to_a_replay(dataset_root):
+    ds = LeRobotDataset(REPO, root=dataset_root, delta_timestamps=CHUNK)
+    assert ds.num_episodes == 24 and ds.fps == 4
+    assert ds.features["observation.state"]["names"][:2] == ["robot_px", "robot_py"]
+    env = CrowdNavEnv(task="BoundedCrowdNav-v0", compute_intrusion=False)
+    for ep in range(0, 24, 5):
+        meta = ds.meta.episodes[ep]
+        lo, hi = meta["dataset_from_index"], meta["dataset_to_index"]
+        # Replay the episode's seed through the gymnasium env with the built-in ORCA robot.
+        obs, _ = env.reset(seed=int(meta["seed"]))
+        observations, actions = [], []
+        while True:
+            action = env.sim.clip_actions(env.expert_action("orca"))
+            observations.append(obs)
+            actions.append(action)
+            obs, _, terminated, truncated, info = env.step(action)
+            if terminated or truncated:
+                break
+        assert hi - lo == len(actions) == meta["length"]
+        assert info["event"] == meta["event"]
+        actions = np.asarray(actions, np.float32)
+        for t in range(len(actions)):
+            item = ds[lo + t]
+            np.testing.assert_array_equal(item["observation.state"].numpy(), observations[t])
+            n_real = min(H, len(actions) - t)
+            np.testing.assert_array_equal(item["action"][:n_real].numpy(), actions[t:t + n_real])
+            assert item["action_is_pad"].tolist() == [False] * n_real + [True] * (H - n_real)
+        assert bool(ds[hi - 1]["next.done"]) and not bool(ds[hi - 2]["next.done"])
+        assert bool(ds[hi - 1]["next.success"]) == (meta["event"] == "success")
+    # Seeds are the consecutive train seeds from --seed (default 0), in order.
+    assert [ds.meta.episodes[i]["seed"] for i in range(24)] == list(range(24))
+
+
+def test_stats_feed_lerobot_normalization(dataset_root):
+    meta = LeRobotDatasetMetadata(REPO, root=dataset_root)
+    assert meta.stats["observation.state"]["mean"].shape == (269,)
+    assert set(meta.stats["action"]) >= {"min", "max", "mean", "std", "q01", "q99"}
+    ds = LeRobotDataset(REPO, root=dataset_root)
+    states = torch.stack([ds[i]["observation.state"] for i in range(len(ds))])
+    np.testing.assert_allclose(meta.stats["observation.state"]["mean"], states.mean(0).numpy(), rtol=1e-4, atol=1e-4)
+    features = {"observation.state": PolicyFeature(FeatureType.STATE, (269,)),
+                "action": PolicyFeature(FeatureType.ACTION, (2,))}
+    norm = NormalizerProcessorStep.from_lerobot_dataset(
+        ds, features, {FeatureType.STATE: NormalizationMode.MEAN_STD, FeatureType.ACTION: NormalizationMode.MIN_MAX})
+    out = norm({"observation": {"observation.state": ds[3]["observation.state"][None]},
+                "action": ds[3]["action"][None]})
+    assert torch.isfinite(out["action"]).all() and out["action"].abs().max() <= 1 + 1e-5
+
+
+def test_keep_success_keeps_only_successes(tmp_path):
+    root = tmp_path / "succ"
+    collect(root, "--keep=success", episodes=10)
+    meta = LeRobotDatasetMetadata(REPO, root=root)
+    events = [meta.episodes[i]["event"] for i in range(meta.total_episodes)]
+    assert events == ["success"] * 10
+
+
+def _committed(root: Path) -> int:
+    try:
+        return json.loads((root / "meta/info.json").read_text())["total_episodes"]
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
+def test_interrupted_collection_loads_and_resumes_to_the_same_dataset(tmp_path, sig):
+    root = tmp_path / "killed"
+    cmd = [sys.executable, str(ROOT / "datasets_scripts/collect_orca.py"), "--episodes=48",
+           "--batch_size=4", f"--root={root}", f"--repo_id={REPO}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "TQDM_DISABLE": "1"})
+    deadline = time.time() + 120
+    while _committed(root) < 8 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    partial = _committed(root)
+    assert 8 <= partial < 48, "the run was not interrupted mid-way"
+    if sig == signal.SIGINT:
+        assert "--resume" in err
+    ds = LeRobotDataset(REPO, root=root)  # what was committed loads
+    assert ds.num_episodes == partial and len(ds) == ds.meta.total_frames
+
+    with pytest.raises(SystemExit, match="--resume"):
+        collect(root, episodes=48, batch_size=4)
+    collect(root, "--resume=true", episodes=48, batch_size=4)
+    full = tmp_path / "uninterrupted"
+    collect(full, episodes=48, batch_size=4)
+    a, b = LeRobotDataset(REPO, root=root), LeRobotDataset(REPO, root=full)
+    assert a.num_episodes == b.num_episodes == 48
+    assert [a.meta.episodes[i]["seed"] for i in range(48)] == list(range(48))
+    for key in ("observation.state", "action", "next.reward", "index", "episode_index"):
+        np.testing.assert_array_equal(np.asarray(a.hf_dataset[key]), np.asarray(b.hf_dataset[key]))
+
+
+def test_bad_input_is_refused_and_loses_nothing(dataset_root, tmp_path):
+    before = {p: p.stat().st_mtime_ns for p in dataset_root.rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit, match="exists and is not empty"):
+        collect(dataset_root)
+    assert before == {p: p.stat().st_mtime_ns for p in dataset_root.rglob("*") if p.is_file()}
+    for bad, message in [("--episodes=0", "--episodes must be >= 1"),
+                         ("--episodes=-3", "--episodes must be >= 1"),
+                         ("--keep=some", "--keep must be one of"),
+                         ("--seed=1000000000", "train seed"),
+                         ("--repo_id=noslash", "<org>/<name>")]:
+        with pytest.raises(SystemExit, match=message):
+            collect_main([bad, f"--root={tmp_path / 'new'}"])
+    with pytest.raises(SystemExit, match="different settings"):
+        collect(dataset_root, "--resume=true", "--keep=success")
+    with pytest.raises(SystemExit, match="no dataset to resume"):
+        collect(tmp_path / "nothing", "--resume=true")
+
+
+def test_hub_dir_round_trip_and_overwrite(dataset_root, tmp_path):
+    hub = tmp_path / "hub"
+    push_main([f"--root={dataset_root}", f"--repo_id={REPO}", f"--push_to_hub_dir={hub}"])
+    repo = hub / "datasets" / "local" / "test_orca"
+    files = sorted(str(p.relative_to(repo)) for p in repo.rglob("*") if p.is_file())
+    assert "README.md" in files and "meta/info.json" in files and "meta/stats.json" in files
+    assert all(f.split("/")[0] in ("README.md", "meta", "data") for f in files)
+    card = (repo / "README.md").read_text()
+    assert card.startswith("---\n") and "robotics" in card and "action_is_pad" in card
+    assert "BoundedCrowdNav-v0" in card and "seeds 0 to 23" in card
+    src, dst = LeRobotDataset(REPO, root=dataset_root), LeRobotDataset(REPO, root=repo)
+    for key in ("observation.state", "action", "next.reward"):
+        np.testing.assert_array_equal(np.asarray(src.hf_dataset[key]), np.asarray(dst.hf_dataset[key]))
+    with pytest.raises(SystemExit, match="--overwrite"):
+        push_main([f"--root={dataset_root}", f"--repo_id={REPO}", f"--push_to_hub_dir={hub}"])
+    (repo / "stale.txt").write_text("from an older push")
+    push_main([f"--root={dataset_root}", f"--repo_id={REPO}", f"--push_to_hub_dir={hub}", "--overwrite=true"])
+    assert not (repo / "stale.txt").exists()
+    assert sorted(p.name for p in repo.parent.iterdir()) == ["test_orca"]  # no staging left behind
