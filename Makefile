@@ -6,10 +6,10 @@ PY := $(VENV)/bin/python
 
 .PHONY: main test bench clean
 
-$(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml
+$(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/lerobot_policy_pdpo/pyproject.toml
 	@test -x $(PY) || "$$(scripts/find_python312.sh)" -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]" -e plugins/lerobot_env_crowdnav
+	$(PY) -m pip install --quiet -e ".[test]" -e plugins/lerobot_env_crowdnav -e policies/lerobot_policy_pdpo
 	@touch $@
 
 # The main job, on embedded defaults: the ORCA robot on the 500 test episodes of Bounded CrowdNav.

@@ -1,0 +1,130 @@
+"""PDPO configuration. Numbers from the PDPO paper / DPPO are marked with their source."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType, NormalizationMode
+from lerobot.optim.optimizers import AdamWConfig
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+
+@PreTrainedConfig.register_subclass("pdpo")
+@dataclass
+class PDPOConfig(PreTrainedConfig):
+    """PDPO: a crowd encoder and a DDPM diffusion actor over a short action chunk.
+
+    The input is ``observation.state``, the 269-float crowd observation of lerobot-crowdnav
+    (``[robot 7 | velocity 2 | humans N x 2(L+1) | mask N]``); the output is a chunk of ``horizon``
+    world-frame velocities, normalized to [-1, 1] by the processor (the x_0 clamp assumes it).
+    """
+
+    # -- inputs / outputs --------------------------------------------------------------------
+    n_obs_steps: int = 1
+    # Action chunk length H (paper: 5; H = 1 is the "w/o action chunk" ablation).
+    horizon: int = 5
+    # Actions executed per sampled chunk: 1 = receding horizon (replan every step, the paper).
+    n_action_steps: int = 1
+    # Crowd layout of observation.state: humans and constant-velocity prediction steps L.
+    num_humans: int = 20
+    prediction_steps: int = 5
+    # Value that fills the rows of invisible humans in observation.state (lerobot-crowdnav: 15).
+    sentinel_value: float = 15.0
+    # MEAN_STD for the state (human-row statistics recomputed without the sentinel rows, see
+    # processor_pdpo), MIN_MAX for actions: [-1, 1].
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {"STATE": NormalizationMode.MEAN_STD, "ACTION": NormalizationMode.MIN_MAX})
+
+    # -- crowd encoder -------------------------------------------------------------------------
+    # MLP_human on each 2(L+1)-float human row.
+    human_mlp_dims: tuple[int, ...] = (128, 128)
+    # Masked multi-head self-attention over visible humans (embedding = human_mlp_dims[-1]).
+    attention_heads: int = 4
+    dropout: float = 0.1
+    # MLP_edge on [attended human, robot state w].
+    edge_mlp_dims: tuple[int, ...] = (256, 256)
+    # MLP_att scores for attention pooling over visible humans.
+    pool_mlp_dims: tuple[int, ...] = (128,)
+    # MLP_latent on [w, pooled edges] -> z (last entry = latent size).
+    latent_mlp_dims: tuple[int, ...] = (512, 256)
+
+    # -- diffusion actor (DPPO DiffusionMLP) ---------------------------------------------------
+    # Denoiser MLP on [x_k flattened, z, psi(k)], ReLU (paper: [512, 256, 256]).
+    denoiser_dims: tuple[int, ...] = (512, 256, 256)
+    # Sinusoidal timestep embedding size (paper: 16), followed by an MLP (16 -> 32 -> 16, Mish).
+    time_embed_dim: int = 16
+    # Denoising steps K (paper: 20), cosine beta schedule, epsilon prediction, DDPM sampling.
+    num_diffusion_steps: int = 20
+    # Clamp of the x_0 prediction while sampling (actions live in [-1, 1]).
+    denoised_clip_value: float = 1.0
+    # Lower bound of the sampling std at each denoising step (DPPO fine-tuning: 0.1; 0 in BC).
+    min_sampling_denoising_std: float = 0.0
+
+    # -- critic (used by fine-tuning) ----------------------------------------------------------
+    # V(z): MLP [256, 256, 256], Mish (paper).
+    value_mlp_dims: tuple[int, ...] = (256, 256, 256)
+
+    # -- training (paper: AdamW, lr 1e-3, weight decay 1e-6, batch 128) -------------------------
+    optimizer_lr: float = 1e-3
+    optimizer_weight_decay: float = 1e-6
+    optimizer_betas: tuple[float, float] = (0.9, 0.999)
+    # Exponential moving average of the actor's weights, used for sampling (DPPO pretraining: 0.995).
+    use_ema: bool = True
+    ema_decay: float = 0.995
+    # Start averaging after this many updates (DPPO: ema starts after a warm-up).
+    ema_start_step: int = 100
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if not 1 <= self.n_action_steps <= self.horizon:
+            raise ValueError(f"n_action_steps must be in [1, horizon={self.horizon}], got {self.n_action_steps}")
+        if self.n_obs_steps != 1:
+            raise ValueError("PDPO conditions on the current observation only (n_obs_steps = 1)")
+        if self.human_mlp_dims[-1] % self.attention_heads:
+            raise ValueError("human_mlp_dims[-1] must be divisible by attention_heads")
+        if self.num_diffusion_steps < 1:
+            raise ValueError("num_diffusion_steps must be >= 1")
+        if not 0 < self.ema_decay < 1:
+            raise ValueError("ema_decay must be in (0, 1)")
+
+    @property
+    def state_dim(self) -> int:
+        return 9 + self.num_humans * 2 * (self.prediction_steps + 1) + self.num_humans
+
+    @property
+    def latent_dim(self) -> int:
+        return self.latent_mlp_dims[-1]
+
+    def validate_features(self) -> None:
+        state = self.input_features.get(OBS_STATE)
+        if state is None or state.type is not FeatureType.STATE:
+            raise ValueError(f"PDPO needs the state input {OBS_STATE!r}, got {list(self.input_features)}")
+        if tuple(state.shape) != (self.state_dim,):
+            raise ValueError(f"{OBS_STATE} has shape {tuple(state.shape)}, but num_humans={self.num_humans} and "
+                             f"prediction_steps={self.prediction_steps} need ({self.state_dim},)")
+        action = self.output_features.get(ACTION)
+        if action is None or tuple(action.shape) != (2,):
+            raise ValueError(f"PDPO outputs 2-D velocities as {ACTION!r}, got {self.output_features}")
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay,
+                           betas=self.optimizer_betas)
+
+    def get_scheduler_preset(self) -> None:
+        return None  # constant learning rate
+
+    @property
+    def observation_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        # The dataset returns actions t .. t+H-1 of the episode, with action_is_pad past its end.
+        return list(range(self.horizon))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None

@@ -1,0 +1,207 @@
+"""The PDPO lerobot plugin: configuration, discovery, loss on real data, padding, sampling,
+save/load, the sentinel-free statistics, and a short lerobot-train -> lerobot-eval round trip."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import draccus
+import numpy as np
+import pytest
+import torch
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_processors
+from lerobot_policy_pdpo.processor_pdpo import crowd_state_stats
+
+from lerobot_crowdnav.collect import main as collect_main
+
+REPO = "local/test_pdpo"
+BIN = Path(sys.executable).parent
+FEATURES = dict(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
+                output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))})
+
+
+@dataclasses.dataclass
+class _PolicyOnly:
+    policy: PreTrainedConfig
+
+
+def make_config(**kw) -> PDPOConfig:
+    return PDPOConfig(**FEATURES, device="cpu", **kw)
+
+
+@pytest.fixture(scope="module")
+def dataset_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pdpo") / "ds"
+    collect_main(["--episodes=16", "--batch_size=8", f"--root={root}", f"--repo_id={REPO}"])
+    return root
+
+
+def test_parameter_counts_match_the_paper_within_10_percent():
+    counts = PDPOPolicy(make_config()).parameter_counts()
+    assert abs(counts["actor"] / 0.848e6 - 1) < 0.10, counts
+    assert abs(counts["critic"] / 0.201e6 - 1) < 0.10, counts
+
+
+def test_config_round_trip_through_draccus(tmp_path):
+    cfg = make_config(horizon=1, ema_decay=0.99, denoiser_dims=(64, 64))
+    cfg._save_pretrained(tmp_path)
+    loaded = PreTrainedConfig.from_pretrained(tmp_path)
+    assert isinstance(loaded, PDPOConfig)
+    assert (loaded.horizon, loaded.ema_decay, tuple(loaded.denoiser_dims)) == (1, 0.99, (64, 64))
+    assert loaded.action_delta_indices == [0]
+
+    parsed = draccus.parse(_PolicyOnly, args=["--policy.type=pdpo", "--policy.horizon=3",
+                                             "--policy.n_action_steps=2"]).policy
+    assert isinstance(parsed, PDPOConfig) and parsed.action_delta_indices == [0, 1, 2]
+    with pytest.raises(ValueError, match="n_action_steps"):
+        make_config(horizon=2, n_action_steps=3)
+
+
+def test_lerobot_discovers_the_plugin():
+    code = ("from lerobot.utils.import_utils import register_third_party_plugins; "
+            "register_third_party_plugins(); "
+            "from lerobot.configs.policies import PreTrainedConfig; "
+            "from lerobot.policies.factory import get_policy_class, make_pre_post_processors; "
+            "print(PreTrainedConfig.get_choice_class('pdpo').__name__, get_policy_class('pdpo').__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-2:] == ["PDPOConfig", "PDPOPolicy"]
+
+
+def _batch(dataset_root, cfg, n=32):
+    ds = LeRobotDataset(REPO, root=dataset_root, delta_timestamps={"action": [k / 4 for k in cfg.action_delta_indices]})
+    pre, _ = make_pdpo_pre_post_processors(cfg, ds.meta.stats)
+    loader = torch.utils.data.DataLoader(ds, batch_size=n, shuffle=True, generator=torch.Generator().manual_seed(0))
+    return pre(next(iter(loader))), ds
+
+
+def test_forward_backward_on_real_data_ignores_padding(dataset_root):
+    torch.manual_seed(0)
+    cfg = make_config()
+    policy = PDPOPolicy(cfg)
+    batch, _ = _batch(dataset_root, cfg, n=64)
+    assert batch["action"].shape == (64, 5, 2) and batch["action"].abs().max() <= 1 + 1e-5
+    loss, info = policy.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and info["denoise_mse"] > 0
+    assert all(p.grad is not None for p in policy.get_optim_params())
+    # The loss only sees non-padded steps: a wildly wrong noise prediction on padded steps
+    # changes nothing, on a real step it does.
+    batch["action_is_pad"][:, 3:] = True
+    torch.manual_seed(1)
+    a, _ = policy.forward(batch)
+    original = policy.denoiser.forward
+
+    def corrupt(steps):
+        def forward(x, k, z):
+            out = original(x, k, z).clone()
+            out[:, steps] += 1e6
+            return out
+        return forward
+
+    policy.denoiser.forward = corrupt(slice(3, None))
+    torch.manual_seed(1)
+    b, _ = policy.forward(batch)
+    policy.denoiser.forward = corrupt(slice(0, 1))
+    torch.manual_seed(1)
+    c, _ = policy.forward(batch)
+    policy.denoiser.forward = original
+    assert torch.equal(a, b) and c > 1e6
+
+
+def test_sentinel_rows_do_not_distort_state_statistics():
+    cfg = make_config()
+    rng = np.random.default_rng(0)
+    n_frames, n = 4000, cfg.num_humans
+    visible = rng.random((n_frames, n)) < np.linspace(0.9, 0.05, n)  # far rows rarely visible
+    rows = rng.normal(2.0, 1.5, (n_frames, n, 12))
+    rows[~visible] = cfg.sentinel_value
+    state = np.concatenate([rng.normal(size=(n_frames, 9)), rows.reshape(n_frames, -1), visible], axis=1)
+    stats = crowd_state_stats({"mean": state.mean(0), "std": state.std(0)}, cfg)
+    vis_values = rows[visible]  # (visible rows, 12)
+    np.testing.assert_allclose(stats["mean"][9:249].reshape(n, 12), np.tile(vis_values.mean(0), (n, 1)), rtol=1e-9)
+    np.testing.assert_allclose(stats["std"][9:249].reshape(n, 12), np.tile(vis_values.std(0), (n, 1)), rtol=1e-9)
+    assert np.all(stats["mean"][249:] == 0) and np.all(stats["std"][249:] == 1)
+    np.testing.assert_array_equal(stats["mean"][:9], state.mean(0)[:9])
+    again = crowd_state_stats(stats, cfg)  # idempotent on corrected statistics
+    np.testing.assert_array_equal(again["mean"], stats["mean"])
+
+
+def test_sampling_shapes_determinism_and_no_nan_without_humans(dataset_root):
+    cfg = make_config()
+    policy = PDPOPolicy(cfg).eval()
+    batch, _ = _batch(dataset_root, cfg, n=8)
+    torch.manual_seed(3)
+    a = policy.predict_action_chunk(batch)
+    torch.manual_seed(3)
+    b = policy.predict_action_chunk(batch)
+    assert a.shape == (8, 5, 2) and torch.equal(a, b) and a.abs().max() <= 1
+    many = policy.sample_chunks(batch, num_samples=6, generator=torch.Generator().manual_seed(0))
+    assert many.shape == (8, 6, 5, 2)
+    assert many[:, 0].ne(many[:, 1]).any()  # different samples for one observation
+    policy.reset()
+    assert policy.select_action(batch).shape == (8, 2)
+    empty = batch["observation.state"].clone()
+    empty[:, 249:] = 0.0  # nobody visible
+    out = policy.predict_action_chunk({"observation.state": empty})
+    assert torch.isfinite(out).all()
+    policy.train()
+    loss, _ = policy.forward({**batch, "observation.state": empty})
+    assert torch.isfinite(loss)
+
+
+def test_save_load_equality_including_ema(dataset_root, tmp_path):
+    cfg = make_config(ema_start_step=0)
+    policy = PDPOPolicy(cfg)
+    batch, _ = _batch(dataset_root, cfg, n=8)
+    opt = torch.optim.AdamW(policy.get_optim_params(), lr=1e-3)
+    for _ in range(3):
+        loss, _ = policy.forward(batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        policy.update()
+    assert not torch.equal(policy.ema["denoiser"].net[0].weight, policy.denoiser.net[0].weight)
+    policy.save_pretrained(tmp_path)
+    assert not list(tmp_path.glob("*.bin")) and not list(tmp_path.glob("*.pt"))  # safetensors only
+    loaded = PDPOPolicy.from_pretrained(tmp_path).eval()
+    policy.eval()
+    for a, b in zip(policy.state_dict().values(), loaded.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    torch.manual_seed(5)
+    x = policy.predict_action_chunk(batch)
+    torch.manual_seed(5)
+    y = loaded.predict_action_chunk(batch)
+    assert torch.equal(x, y)
+
+
+def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
+    out = tmp_path / "train"
+    train = subprocess.run(
+        [str(BIN / "lerobot-train"), "--policy.type=pdpo", f"--dataset.repo_id={REPO}",
+         f"--dataset.root={dataset_root}", "--policy.push_to_hub=false", f"--output_dir={out}",
+         "--steps=20", "--batch_size=32", "--save_freq=20", "--log_freq=10", "--num_workers=0",
+         "--policy.device=cpu", "--wandb.enable=false"],
+        capture_output=True, text=True, timeout=600)
+    assert train.returncode == 0, train.stderr[-3000:]
+    ckpt = out / "checkpoints" / "000020" / "pretrained_model"
+    names = {p.name for p in ckpt.iterdir()}
+    assert {"config.json", "model.safetensors", "train_config.json", "policy_preprocessor.json",
+            "policy_postprocessor.json"} <= names
+    assert json.loads((ckpt / "config.json").read_text())["type"] == "pdpo"
+    ev = subprocess.run(
+        [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--env.type=crowdnav",
+         "--env.task=BoundedCrowdNav-v0", "--eval.n_episodes=2", "--eval.batch_size=2",
+         "--policy.device=cpu", f"--output_dir={tmp_path / 'eval'}", "--seed=2000000000"],
+        capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
+    assert info["per_group"]["crowdnav"]["n_episodes"] == 2
+    assert len(info["per_task"][0]["metrics"]["successes"]) == 2
