@@ -2,6 +2,7 @@
 
     lerobot-crowdnav-eval --policy.type=orca --env.task=BoundedCrowdNav-v0 \\
         --eval.n_episodes=500 --eval.split=test --output_dir=outputs/eval/orca
+    lerobot-crowdnav-eval --policy.path=outputs/train/<run>/checkpoints/last/pretrained_model
 
 Prints the markdown row ``SR | NT | PL | ITR | SD`` (+ CR, TR, OOB for the original variant) and
 writes ``<output_dir>/metrics.json``: the metrics (``sr, cr, tr, nt, pl, itr, sd, oob``; rates as
@@ -14,6 +15,7 @@ import json
 import math
 import os
 import platform
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,6 +51,74 @@ class StraightPolicyConfig(RobotPolicyConfig):
     """Full speed toward the goal, ignoring humans: a floor for learned policies."""
 
 
+@RobotPolicyConfig.register_subclass("pretrained")
+@dataclass
+class PretrainedPolicyConfig(RobotPolicyConfig):
+    """A trained lerobot policy checkpoint (PDPO or any lerobot policy on observation.state):
+    --policy.path=<output_dir>/checkpoints/<step>/pretrained_model (or a hub-format directory)."""
+
+    # Checkpoint directory holding config.json, model.safetensors and the processors.
+    path: Path | None = None
+    # Torch device for the policy.
+    device: str = "cpu"
+    # Seed of the policy's sampling noise.
+    seed: int = 0
+
+    @property
+    def name(self) -> str:
+        path = Path(self.path or "?")
+        if path.name == "pretrained_model" and len(path.parents) >= 3:  # <run>/checkpoints/<step>/
+            return f"{path.parents[2].name}@{path.parent.name}"
+        return path.name
+
+
+class LearnedPolicy:
+    """A lerobot policy driving a batch of envs: observation.state in, (B, 2) velocities in m/s
+    out. Chunks are sampled for the whole batch and each slot executes its first
+    ``n_action_steps`` actions (1: replan every step) before taking the next chunk."""
+
+    def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0):
+        import torch
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        from lerobot.utils.import_utils import register_third_party_plugins
+
+        path = Path(path)
+        if not (path / "config.json").exists():
+            raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
+        register_third_party_plugins()
+        cfg = PreTrainedConfig.from_pretrained(path)
+        cfg.device = device
+        state = cfg.input_features.get("observation.state")
+        if state is None or tuple(state.shape) != (obs_dim,):
+            raise ValueError(f"policy at {path} expects observation.state of shape "
+                             f"{None if state is None else tuple(state.shape)}, the env gives ({obs_dim},)")
+        self.torch = torch
+        self.policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
+        self.pre, self.post = make_pre_post_processors(cfg, pretrained_path=str(path))
+        self.n_action_steps = getattr(cfg, "n_action_steps", 1)
+        self.generator = torch.Generator(device=device).manual_seed(seed)
+        self.chunk: np.ndarray | None = None
+        self.index: np.ndarray | None = None
+
+    def __call__(self, obs: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        b = obs.shape[0]
+        if self.chunk is None or self.chunk.shape[0] != b:
+            self.chunk, self.index = None, np.zeros(b, np.int64)
+            fresh = np.ones(b, bool)
+        need = fresh | (self.index >= self.n_action_steps)
+        if need.any():
+            with self.torch.inference_mode():
+                batch = self.pre({"observation.state": self.torch.as_tensor(obs, dtype=self.torch.float32)})
+                chunk = self.policy.predict_action_chunk(batch, generator=self.generator)
+                chunk = self.post(chunk).cpu().numpy()
+            self.chunk = chunk if self.chunk is None else np.where(need[:, None, None], chunk, self.chunk)
+            self.index[need] = 0
+        actions = self.chunk[np.arange(b), self.index]
+        self.index += 1
+        return actions
+
+
 @dataclass
 class EvalSettings:
     # Number of episodes: the first n seeds of the split.
@@ -77,7 +147,7 @@ class EvalConfig:
     # Simulator: --env.task (CrowdNav-v0 | BoundedCrowdNav-v0), --env.preset (paper | crowdnavpp)
     # and any simulator field, e.g. --env.randomize_attributes=false.
     env: CrowdSimConfig = field(default_factory=CrowdSimConfig)
-    # Robot policy: --policy.type=orca | straight.
+    # Robot policy: --policy.type=orca | straight, or --policy.path=<checkpoint> for a trained one.
     policy: RobotPolicyConfig = field(default_factory=OrcaPolicyConfig)
     eval: EvalSettings = field(default_factory=EvalSettings)
     # Where metrics.json goes (default: outputs/eval/<task>_<preset>_<policy>_<split>).
@@ -86,16 +156,21 @@ class EvalConfig:
     overwrite: bool = False
 
 
-def run_episodes(env: CrowdNavVectorEnv, policy: str, split: str, n_episodes: int,
-                 progress: bool = True) -> list[EpisodeRecord]:
-    """Run the first ``n_episodes`` seeds of ``split`` with a built-in policy; records by seed."""
+def run_episodes(env: CrowdNavVectorEnv, policy, split: str, n_episodes: int,
+                 progress: bool = True, label: str = "") -> list[EpisodeRecord]:
+    """Run the first ``n_episodes`` seeds of ``split``; records by seed. ``policy`` is a built-in
+    name ("orca", "straight") or a callable ``(obs (B, D), fresh (B,)) -> actions (B, 2)``, fresh
+    marking the slots whose episode just started."""
     seeds = split_seeds(split, n_episodes)
     wanted = set(seeds)
-    env.reset(seed=seeds[0])
+    obs, _ = env.reset(seed=seeds[0])
+    fresh = np.ones(env.num_envs, bool)
     records: dict[int, EpisodeRecord] = {}
-    bar = tqdm(total=n_episodes, desc=f"eval {policy}", unit="ep", disable=not progress)
+    bar = tqdm(total=n_episodes, desc=f"eval {label or policy}", unit="ep", disable=not progress)
     while len(records) < n_episodes:
-        _, _, _, _, info = env.step(env.expert_actions(policy))
+        actions = policy(obs, fresh) if callable(policy) else env.expert_actions(policy)
+        obs, _, terminated, truncated, info = env.step(actions)
+        fresh = terminated | truncated
         if "final_info" in info:
             for b in np.flatnonzero(info["_final_info"]):
                 rec = EpisodeRecord.from_final_info(info["final_info"], b)
@@ -132,15 +207,20 @@ def evaluate(cfg: EvalConfig) -> dict:
     cfg.eval.validate()
     sim_cfg = cfg.env.resolve()
     policy = cfg.policy.name
-    out = cfg.output_dir or Path("outputs/eval") / f"{sim_cfg.task}_{sim_cfg.preset}_{policy}_{cfg.eval.split}"
+    out = cfg.output_dir or Path("outputs/eval") / f"{sim_cfg.task}_{sim_cfg.preset}_{policy.replace('@', '_')}_{cfg.eval.split}"
     out = Path(out)
     metrics_path = out / "metrics.json"
     if metrics_path.exists() and not cfg.overwrite:
         raise FileExistsError(f"{metrics_path} exists; pass --overwrite=true to replace it or choose another --output_dir")
     batch = min(cfg.eval.batch_size, cfg.eval.n_episodes)
     env = CrowdNavVectorEnv(batch, config=sim_cfg)
+    actor = policy
+    if isinstance(cfg.policy, PretrainedPolicyConfig):
+        if cfg.policy.path is None:
+            raise ValueError("--policy.type=pretrained needs --policy.path")
+        actor = LearnedPolicy(cfg.policy.path, cfg.policy.device, sim_cfg.obs_dim, cfg.policy.seed)
     start = time.perf_counter()
-    records = run_episodes(env, policy, cfg.eval.split, cfg.eval.n_episodes)
+    records = run_episodes(env, actor, cfg.eval.split, cfg.eval.n_episodes, label=policy)
     elapsed = time.perf_counter() - start
     metrics = compute_metrics(records, sim_cfg.dt)
     result = {
@@ -163,7 +243,11 @@ def evaluate(cfg: EvalConfig) -> dict:
 
         single = CrowdNavEnv(render_mode="rgb_array", config=sim_cfg)
         for seed in split_seeds(cfg.eval.split, min(cfg.eval.n_videos, cfg.eval.n_episodes)):
-            record_episode(single, out / "videos" / f"{policy}_seed{seed}.gif", seed, policy)
+            step_policy = policy
+            if callable(actor):
+                actor.chunk = None  # a new episode
+                step_policy = lambda o: actor(o[None], np.zeros(1, bool))[0]  # noqa: E731
+            record_episode(single, out / "videos" / f"{policy.replace('@', '_')}_seed{seed}.gif", seed, step_policy)
     print(f"\n{sim_cfg.task} ({sim_cfg.preset}), policy {policy}, {len(records)} {cfg.eval.split} episodes:")
     print(markdown_header(sim_cfg.bounded))
     print(result["markdown"])
@@ -172,10 +256,13 @@ def evaluate(cfg: EvalConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if any(a.startswith("--policy.path") for a in argv) and not any(a.startswith("--policy.type") for a in argv):
+        argv.insert(0, "--policy.type=pretrained")  # lerobot-style --policy.path=<checkpoint>
     cfg = draccus.parse(config_class=EvalConfig, args=argv)
     try:
         evaluate(cfg)
-    except (ValueError, FileExistsError) as e:
+    except (ValueError, FileExistsError, FileNotFoundError) as e:
         raise SystemExit(f"error: {e}") from None
 
 

@@ -1,11 +1,14 @@
 """Hub-format directories: exactly what a Hugging Face Hub repository would hold, written locally.
 
 ``<dir>/datasets/<org>/<name>/`` holds a dataset repository (``meta/``, ``data/``, ``README.md``
-card with its YAML header), loadable with ``LeRobotDataset("<org>/<name>", root=...)``. A push
+card with its YAML header), loadable with ``LeRobotDataset("<org>/<name>", root=...)``;
+``<dir>/models/<org>/<name>/`` a policy repository (``config.json``, ``model.safetensors``,
+processors, ``train_config.json``, ``README.md`` model card), loadable with ``--policy.path``. A push
 is written aside and moved into place, so a failed push never leaves a half-written repository.
 
-Standalone: ``python -m lerobot_crowdnav.hub --root=<dataset> --repo_id=<org>/<name>
---push_to_hub_dir=<dir> [--overwrite=true]``.
+Standalone: ``python -m lerobot_crowdnav.hub --kind=dataset|policy --root=<dataset or
+pretrained_model> --repo_id=<org>/<name> --push_to_hub_dir=<dir> [--overwrite=true]
+[--metrics=<metrics.json>]``.
 """
 
 from __future__ import annotations
@@ -43,6 +46,23 @@ batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
         license="apache-2.0", repo_id=repo_id, dataset_description=description)
 
 
+def _publish(target: Path, overwrite: bool, fill) -> Path:
+    """Write a repository directory aside with ``fill(staging_dir)``, then move it to ``target``
+    (replacing an existing one only with ``overwrite``)."""
+    if target.exists() and not overwrite:
+        raise FileExistsError(f"{target} exists; pass --overwrite=true (collect_orca: --push_overwrite=true) to replace it")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        fill(staging / "repo")
+        if target.exists():
+            target.replace(staging / "old")
+        (staging / "repo").replace(target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
 def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, overwrite: bool = False) -> Path:
     """Copy the dataset repository files of ``root`` to ``hub_dir/datasets/<org>/<name>``."""
     root = Path(root)
@@ -50,39 +70,146 @@ def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, ove
         raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
     if not (root / "README.md").exists():
         raise FileNotFoundError(f"{root} has no dataset card (README.md)")
-    org, name = repo_id.split("/")
-    target = Path(hub_dir) / "datasets" / org / name
-    if target.exists() and not overwrite:
-        raise FileExistsError(f"{target} exists; pass --overwrite=true (collect_orca: --push_overwrite=true) to replace it")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=target.parent))
-    try:
-        shutil.copytree(root, staging / "repo", ignore=shutil.ignore_patterns(*REPO_IGNORE))
-        if target.exists():
-            old = staging / "old"
-            target.replace(old)
-        (staging / "repo").replace(target)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return target
+    org, name = _split_repo_id(repo_id)
+    return _publish(Path(hub_dir) / "datasets" / org / name, overwrite,
+                    lambda dst: shutil.copytree(root, dst, ignore=shutil.ignore_patterns(*REPO_IGNORE)))
+
+
+PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
+
+
+def _split_repo_id(repo_id: str) -> tuple[str, str]:
+    parts = repo_id.split("/")
+    if len(parts) != 2 or not all(parts):
+        raise ValueError(f"repo_id must look like <org>/<name>, got {repo_id!r}")
+    return parts[0], parts[1]
+
+
+def _parameter_counts(weights: Path) -> dict[str, int]:
+    from safetensors import safe_open
+
+    counts = {"actor": 0, "critic": 0}
+    with safe_open(str(weights), "pt") as f:
+        for key in f.keys():
+            part = key.split(".")[0]
+            numel = 1
+            for d in f.get_slice(key).get_shape():
+                numel *= d
+            if part in ("encoder", "denoiser"):
+                counts["actor"] += numel
+            elif part == "value":
+                counts["critic"] += numel
+    return counts
+
+
+def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
+    """Model card: architecture, training data and budget, parameter counts, evaluation table."""
+    import json
+
+    from huggingface_hub import ModelCard, ModelCardData
+
+    from .metrics import markdown_header, markdown_row
+
+    config = json.loads((pretrained / "config.json").read_text())
+    train = json.loads((pretrained / "train_config.json").read_text()) if (pretrained / "train_config.json").exists() else {}
+    counts = _parameter_counts(pretrained / "model.safetensors")
+    dataset = (train.get("dataset") or {}).get("repo_id")
+    lines = [
+        f"# {repo_id}", "",
+        "PDPO (diffusion policy for short-horizon planning in robot crowd navigation), a lerobot policy "
+        "trained with lerobot-crowdnav.", "",
+        "## Architecture", "",
+        f"- Input: `observation.state`, the 269-float crowd observation ({config.get('num_humans')} humans, "
+        f"{config.get('prediction_steps')} prediction steps); output: a chunk of H = {config.get('horizon')} "
+        f"world-frame velocities (m/s), of which the first {config.get('n_action_steps')} are executed (receding horizon).",
+        f"- Crowd encoder: human MLP {config.get('human_mlp_dims')}, {config.get('attention_heads')}-head masked "
+        f"self-attention with residual, layer norm, dropout {config.get('dropout')}; edge MLP {config.get('edge_mlp_dims')}; "
+        f"attention pooling over visible humans; latent MLP {config.get('latent_mlp_dims')}.",
+        f"- Diffusion actor: denoiser MLP {config.get('denoiser_dims')} (ReLU) with a {config.get('time_embed_dim')}-dim "
+        f"sinusoidal timestep embedding; cosine schedule, epsilon prediction, K = {config.get('num_diffusion_steps')} "
+        f"DDPM steps; EMA sampling weights: {config.get('use_ema')} (decay {config.get('ema_decay')}).",
+        f"- Value head (critic): MLP {config.get('value_mlp_dims')}, Mish.",
+        f"- Parameters: actor (encoder + denoiser) {counts['actor'] / 1e6:.3f} M (paper: 0.848 M); critic "
+        f"{counts['critic'] / 1e6:.3f} M (paper: 0.201 M).", "",
+        "## Training", "",
+        f"- Data: `{dataset}`" + (f" ({train.get('dataset', {}).get('root')})" if train else "") + ".",
+        f"- Budget: {train.get('steps')} steps at batch {train.get('batch_size')} "
+        f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}.", "",
+        "## Evaluation", "",
+    ]
+    if metrics:
+        bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
+        lines += [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
+                  f"{metrics['split']} episodes (`lerobot-crowdnav-eval`):", "",
+                  markdown_header(bounded), markdown_row({k: (float('nan') if v is None else v) for k, v in metrics.items()
+                                                         if k in ('sr', 'cr', 'tr', 'nt', 'pl', 'itr', 'sd', 'oob')}, bounded)]
+    else:
+        lines.append("Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`.")
+    lines += ["", "## Use", "", "```bash",
+              f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task=BoundedCrowdNav-v0 "
+              "--eval.n_episodes=50 --seed=2000000000", "```"]
+    data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
+                         tags=["robotics", "lerobot", "pdpo", "diffusion-policy", "crowd-navigation"],
+                         datasets=[dataset] if dataset else None)
+    return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")
+
+
+def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path, overwrite: bool = False,
+                       metrics_path: str | Path | None = None) -> Path:
+    """Copy a ``pretrained_model`` directory to ``hub_dir/models/<org>/<name>`` with a model card:
+    config, safetensors weights, processors, train config. Pickled weights are refused."""
+    import json
+
+    pretrained = Path(pretrained)
+    for required in ("config.json", "model.safetensors"):
+        if not (pretrained / required).exists():
+            raise FileNotFoundError(f"{pretrained} is not a pretrained_model directory (no {required})")
+    pickles = [p.name for p in pretrained.iterdir() if p.suffix in PICKLE_SUFFIXES]
+    if pickles:
+        raise ValueError(f"refusing pickled files {pickles}: the hub format holds safetensors only")
+    files = [p for p in pretrained.iterdir() if p.is_file() and (
+        p.name in ("config.json", "model.safetensors", "train_config.json")
+        or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
+    metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
+    card = policy_card(pretrained, repo_id, metrics)
+    org, name = _split_repo_id(repo_id)
+
+    def fill(dst: Path) -> None:
+        dst.mkdir(parents=True)
+        for f in files:
+            shutil.copy2(f, dst / f.name)
+        card.save(dst / "README.md")
+
+    return _publish(Path(hub_dir) / "models" / org / name, overwrite, fill)
 
 
 @dataclass
 class PushConfig:
-    # Dataset directory to publish.
-    root: Path
+    # What to publish: dataset (a LeRobotDataset root) or policy (a pretrained_model directory).
+    kind: str = "dataset"
+    # Dataset root, or the policy's pretrained_model directory.
+    root: Path | None = None
     # Repository name, <org>/<name>.
-    repo_id: str
-    # Hub-format directory: the repository goes to <dir>/datasets/<org>/<name>/.
-    push_to_hub_dir: Path
+    repo_id: str = ""
+    # Hub-format directory: the repository goes to <dir>/datasets|models/<org>/<name>/.
+    push_to_hub_dir: Path | None = None
     # Replace an existing repository directory.
     overwrite: bool = False
+    # Policies: a metrics.json of lerobot-crowdnav-eval to put in the model card.
+    metrics: Path | None = None
 
 
 def main(argv: list[str] | None = None) -> None:
     cfg = draccus.parse(config_class=PushConfig, args=argv)
     try:
-        print(push_dataset_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite))
+        if cfg.root is None or cfg.push_to_hub_dir is None or not cfg.repo_id:
+            raise ValueError("--root, --repo_id and --push_to_hub_dir are required")
+        if cfg.kind == "dataset":
+            print(push_dataset_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite))
+        elif cfg.kind == "policy":
+            print(push_policy_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite, cfg.metrics))
+        else:
+            raise ValueError(f"--kind must be dataset or policy, got {cfg.kind!r}")
     except (FileExistsError, FileNotFoundError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
 

@@ -205,3 +205,40 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
     info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
     assert info["per_group"]["crowdnav"]["n_episodes"] == 2
     assert len(info["per_task"][0]["metrics"]["successes"]) == 2
+
+    # lerobot-crowdnav-eval with the checkpoint: full metrics on test seeds.
+    from lerobot_crowdnav.eval import main as eval_main
+    from lerobot_crowdnav.hub import push_policy_to_dir
+
+    eval_main([f"--policy.path={ckpt}", "--eval.n_episodes=4", "--eval.batch_size=2",
+               f"--output_dir={tmp_path / 'crowdnav_eval'}"])
+    metrics = json.loads((tmp_path / "crowdnav_eval" / "metrics.json").read_text())
+    assert metrics["n_episodes"] == 4 and metrics["policy"] == "train@000020"
+    with pytest.raises(SystemExit, match="no config.json"):
+        eval_main([f"--policy.path={tmp_path}", f"--output_dir={tmp_path / 'bad'}"])
+    with pytest.raises(SystemExit, match="observation.state of shape"):
+        eval_main([f"--policy.path={ckpt}", "--env.num_humans=5", f"--output_dir={tmp_path / 'bad2'}"])
+
+    # Hub-format model directory: what a Hub model repo holds, loadable by lerobot-eval and
+    # from_pretrained with identical weights.
+    repo = push_policy_to_dir(ckpt, "local/pdpo_tiny", tmp_path / "hub", metrics_path=tmp_path / "crowdnav_eval" / "metrics.json")
+    assert repo == tmp_path / "hub" / "models" / "local" / "pdpo_tiny"
+    names = {p.name for p in repo.iterdir()}
+    assert {"README.md", "config.json", "model.safetensors", "train_config.json", "policy_preprocessor.json",
+            "policy_postprocessor.json"} <= names
+    assert not any(n.endswith((".bin", ".pt", ".pkl")) for n in names)
+    card = (repo / "README.md").read_text()
+    assert card.startswith("---\n") and "library_name: lerobot" in card and "0.848 M" in card and "| SR (%)" in card
+    a, b = PDPOPolicy.from_pretrained(ckpt), PDPOPolicy.from_pretrained(repo)
+    for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+        assert torch.equal(x, y)
+    ev = subprocess.run(
+        [str(BIN / "lerobot-eval"), f"--policy.path={repo}", "--env.type=crowdnav", "--eval.n_episodes=1",
+         "--eval.batch_size=1", "--policy.device=cpu", f"--output_dir={tmp_path / 'eval_hub'}"],
+        capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    with pytest.raises(FileExistsError):
+        push_policy_to_dir(ckpt, "local/pdpo_tiny", tmp_path / "hub")
+    (ckpt / "stale.pt").write_bytes(b"pickle")
+    with pytest.raises(ValueError, match="pickled"):
+        push_policy_to_dir(ckpt, "local/pdpo_tiny", tmp_path / "hub", overwrite=True)
