@@ -177,7 +177,11 @@ def agent_orca_line(px, py, vx, vy, radius, ox, oy, ovx, ovy, oradius, inv_time_
         wx = rel_vx - inv_time_step * rel_px
         wy = rel_vy - inv_time_step * rel_py
         w_length = math.sqrt(wx * wx + wy * wy)
-        ux_, uy_ = wx / w_length, wy / w_length
+        if w_length > 1e-12:
+            ux_, uy_ = wx / w_length, wy / w_length
+        else:
+            # Coincident agents with equal velocities: RVO2 divides by zero (NaN); push along +x.
+            w_length, ux_, uy_ = 0.0, 1.0, 0.0
         dx, dy = uy_, -ux_
         scale = combined_radius * inv_time_step - w_length
         ux, uy = scale * ux_, scale * uy_

@@ -142,7 +142,7 @@ def test_module_help_mentions_every_setting():
     assert res.returncode == 0, res.stderr
     for f in dataclasses.fields(EvalSettings):
         assert f"--eval.{f.name}" in res.stdout, f.name
-    for flag in ("--policy.type {orca,straight}", "--env.task", "--env.preset", "--output_dir", "--overwrite"):
+    for flag in ("--policy.type {orca,straight,pretrained}", "--policy.path", "--env.task", "--env.preset", "--output_dir", "--overwrite"):
         assert flag in res.stdout, flag
 
 

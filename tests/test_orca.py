@@ -101,6 +101,8 @@ scene = st.integers(2, 12).flatmap(lambda n: st.tuples(
 @given(scene)
 @example(([(0.0, 0.0)] * 3, [(0.0, 0.0), (1.0, 0.0), (0.125, 1e-05)], [(0.0, 0.0)] * 3, [0.5] * 3,
           [1.0] * 3))  # coincident agents (found by hypothesis)
+@example(([(0.0, 0.0)] * 2, [(0.0, 0.0), (4.8e-291, 2e-302)], [(0.0, 0.0)] * 2, [0.5] * 2,
+          [1.0] * 2))  # coincident agents, (almost) equal velocities: RVO2 would give NaN
 def test_new_velocity_is_finite_and_within_max_speed(s):
     pos, vel, pref, radii, vmax = (np.array(x, float) for x in s)
     out = new_velocities(pos, vel, radii, vmax, pref)
