@@ -40,8 +40,9 @@ class CollectConfig:
     repo_id: str = "local/crowdnav_orca"
     # Dataset directory (default: outputs/datasets/<repo_id>).
     root: Path | None = None
-    # Episodes kept: all (every outcome) or success (successful episodes only).
-    keep: str = "all"
+    # Episodes kept: success (successful episodes only; the default, measured to pretrain the
+    # better policy, see docs/dataset.md) or all (every outcome).
+    keep: str = "success"
     # Complete an interrupted collection in root to --episodes, with the same seeds.
     resume: bool = False
     # Delete an existing root and collect from scratch.

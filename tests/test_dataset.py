@@ -29,8 +29,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def collect(root, *args, episodes=24, batch_size=8):
+    keep = [] if any(a.startswith("--keep") for a in args) else ["--keep=all"]
     collect_main([f"--episodes={episodes}", f"--batch_size={batch_size}", f"--root={root}",
-                  f"--repo_id={REPO}", *args])
+                  f"--repo_id={REPO}", *keep, *args])
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +109,7 @@ def _committed(root: Path) -> int:
 def test_interrupted_collection_loads_and_resumes_to_the_same_dataset(tmp_path, sig):
     root = tmp_path / "killed"
     cmd = [sys.executable, str(ROOT / "datasets_scripts/collect_orca.py"), "--episodes=48",
-           "--batch_size=4", f"--root={root}", f"--repo_id={REPO}"]
+           "--batch_size=4", f"--root={root}", f"--repo_id={REPO}", "--keep=all"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "TQDM_DISABLE": "1"})
     deadline = time.time() + 120
