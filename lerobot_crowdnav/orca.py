@@ -427,6 +427,11 @@ def compute_new_velocity(ego, positions, velocities, radii, candidates, n_candid
     fail, rx, ry = linear_program2(lines, n, max_speed, pref_x, pref_y, False)
     if fail < n:
         rx, ry = linear_program3(lines, n, n_obst, fail, max_speed, rx, ry, proj)
+    # RVO2 returns the LP point as is; in degenerate scenes (coincident agents, lines parallel
+    # within RVO_EPSILON) rounding can leave it ~1e-6 outside the max-speed disc. Keep the bound.
+    speed = math.sqrt(rx * rx + ry * ry)
+    if speed > max_speed:
+        rx, ry = rx * (max_speed / speed), ry * (max_speed / speed)
     return rx, ry
 
 
