@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from .config import SEED_SPLITS, CrowdSimConfig
 from .dataset import DemonstrationWriter, outcome_counts
-from .hub import dataset_card, push_dataset_to_dir
+from .hub import dataset_card, push_dataset_to_dir, split_repo_id
 from .sim import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
 
 KEEP = ("all", "success")
@@ -66,8 +66,7 @@ class CollectConfig:
         lo, hi = SEED_SPLITS["train"]
         if not lo <= self.seed < hi:
             raise ValueError(f"--seed must be a train seed in [{lo}, {hi}), got {self.seed}")
-        if self.repo_id.count("/") != 1 or not all(self.repo_id.split("/")):
-            raise ValueError(f"--repo_id must look like <org>/<name>, got {self.repo_id!r}")
+        split_repo_id(self.repo_id)
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
         root = Path(self.root or Path("outputs/datasets") / self.repo_id)
@@ -145,9 +144,8 @@ def collect(cfg: CollectConfig) -> dict:
     counts = outcome_counts([r["event"] for r in rows])
     summary = {"root": str(root), "episodes": len(rows), "frames": writer.info.total_frames,
                "outcomes": counts, "first_seed": rows[0]["seed"], "last_seed": rows[-1]["seed"],
-               "wall_time_s": elapsed, "size_mb": _size_mb(root)}
-    card = dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary)
-    card.save(root / "README.md")
+               "wall_time_s": elapsed}
+    dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary).save(root / "README.md")
     summary["size_mb"] = _size_mb(root)
     if cfg.push_to_hub_dir:
         summary["hub_dir"] = str(push_dataset_to_dir(root, cfg.repo_id, cfg.push_to_hub_dir,

@@ -22,14 +22,13 @@ import draccus
 from lerobot.datasets.utils import create_lerobot_dataset_card
 
 from .config import CrowdSimConfig
+from .dataset import FPS
 
 REPO_IGNORE = ("images", "videos", "*.tmp")  # lerobot's push_to_hub skips images/ (no videos here)
 
 
 def dataset_card(repo_id: str, info, sim_cfg: CrowdSimConfig, collection: dict, summary: dict):
     """The dataset card (lerobot's template and YAML header) with the collection's facts."""
-    from .dataset import FPS
-
     outcomes = ", ".join(f"{k} {v}" for k, v in summary["outcomes"].items())
     description = f"""ORCA demonstrations in the crowd-navigation simulator of lerobot-crowdnav (a
 batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
@@ -70,7 +69,7 @@ def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, ove
         raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
     if not (root / "README.md").exists():
         raise FileNotFoundError(f"{root} has no dataset card (README.md)")
-    org, name = _split_repo_id(repo_id)
+    org, name = split_repo_id(repo_id)
     return _publish(Path(hub_dir) / "datasets" / org / name, overwrite,
                     lambda dst: shutil.copytree(root, dst, ignore=shutil.ignore_patterns(*REPO_IGNORE)))
 
@@ -78,7 +77,7 @@ def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, ove
 PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
 
 
-def _split_repo_id(repo_id: str) -> tuple[str, str]:
+def split_repo_id(repo_id: str) -> tuple[str, str]:
     parts = repo_id.split("/")
     if len(parts) != 2 or not all(parts):
         raise ValueError(f"repo_id must look like <org>/<name>, got {repo_id!r}")
@@ -172,7 +171,7 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
     card = policy_card(pretrained, repo_id, metrics)
-    org, name = _split_repo_id(repo_id)
+    org, name = split_repo_id(repo_id)
 
     def fill(dst: Path) -> None:
         dst.mkdir(parents=True)
