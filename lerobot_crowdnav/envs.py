@@ -158,6 +158,23 @@ class CrowdNavVectorEnv(VectorEnv):
                     self._ep_oob):
             acc[idx] = 0
 
+    _ACCUMULATORS = ("_ep_return", "_ep_len", "_ep_path", "_ep_intr", "_ep_intr_sum", "_ep_oob")
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The whole batch mid-episode (simulator arrays, episode accumulators, seed stream) as
+        plain arrays, e.g. for ``np.savez``; :meth:`load_state_dict` continues it exactly."""
+        state = {f"sim.{k}": v for k, v in self.sim.state_dict().items()}
+        state.update({k: getattr(self, k).copy() for k in self._ACCUMULATORS})
+        state["_next_seed"] = np.int64(self._next_seed)
+        return state
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.sim.load_state_dict({k[4:]: v for k, v in state.items() if k.startswith("sim.")})
+        for k in self._ACCUMULATORS:
+            getattr(self, k)[...] = state[k]
+        self._next_seed = int(state["_next_seed"])
+        self._seeded = True
+
     def _obs(self, obs: np.ndarray):
         return {"agent_pos": obs} if self.obs_mode == "dict" else obs
 

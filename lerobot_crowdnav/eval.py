@@ -182,12 +182,12 @@ def run_episodes(env: CrowdNavVectorEnv, policy, split: str, n_episodes: int,
     return [records[s] for s in seeds]
 
 
-def _json_safe(value):
+def json_safe(value):
     """Strict JSON: undefined means (NaN, e.g. NT without a success) become null."""
     if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
+        return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
@@ -236,7 +236,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     }
     out.mkdir(parents=True, exist_ok=True)
     tmp = metrics_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(_json_safe(result), indent=2, allow_nan=False))
+    tmp.write_text(json.dumps(json_safe(result), indent=2, allow_nan=False))
     tmp.replace(metrics_path)
     if cfg.eval.n_videos:
         from .render import record_episode

@@ -553,11 +553,27 @@ class CrowdSim:
         self._parallel = B >= PARALLEL_MIN_BATCH
         self._scratch = _make_scratch(n, self.obstacles[0].shape[0])
 
+    # The state arrays, in the order the kernels take them.
+    STATE_FIELDS = ("rng", "step_count", "potential", "robot_pos", "robot_vel", "robot_goal", "human_pos",
+                    "human_vel", "human_goal", "human_radius", "human_vpref", "seen", "seen_pos", "seen_vel",
+                    "seen_radius", "pred", "visible", "obs")
+
     def _state(self):
-        return (self.rng, self.step_count, self.potential, self.robot_pos, self.robot_vel,
-                self.robot_goal, self.human_pos, self.human_vel, self.human_goal, self.human_radius,
-                self.human_vpref, self.seen, self.seen_pos, self.seen_vel, self.seen_radius,
-                self.pred, self.visible, self.obs)
+        return tuple(getattr(self, name) for name in self.STATE_FIELDS)
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Copies of every state array (and the episode seeds): with :meth:`load_state_dict`, a
+        paused batch continues bitwise identically (resumable training)."""
+        return {name: getattr(self, name).copy() for name in (*self.STATE_FIELDS, "seeds")}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        for name in (*self.STATE_FIELDS, "seeds"):
+            current = getattr(self, name)
+            value = np.asarray(state[name])
+            if value.shape != current.shape or value.dtype != current.dtype:
+                raise ValueError(f"simulator state {name!r}: got {value.dtype}{value.shape}, "
+                                 f"expected {current.dtype}{current.shape}")
+            current[...] = value
 
     def reset(self, seeds, idx=None) -> np.ndarray:
         """Start episode ``seeds[q]`` in slot ``idx[q]`` (all slots when ``idx`` is None)."""

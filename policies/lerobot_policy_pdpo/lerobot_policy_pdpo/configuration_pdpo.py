@@ -58,8 +58,14 @@ class PDPOConfig(PreTrainedConfig):
     num_diffusion_steps: int = 20
     # Clamp of the x_0 prediction while sampling (actions live in [-1, 1]).
     denoised_clip_value: float = 1.0
-    # Lower bound of the sampling std at each denoising step (DPPO fine-tuning: 0.1; 0 in BC).
+    # Lower bound of the sampling std of select_action / predict_action_chunk (0: the DDPM
+    # posterior std, no noise at the last step; DPPO's deterministic evaluation). Fine-tuning
+    # rollouts explore with their own floor (lerobot_crowdnav.finetune: 0.1, every step).
     min_sampling_denoising_std: float = 0.0
+    # Denoising steps fine-tuned by diffusion PPO (DPPO's K'; 0 = a BC policy). When > 0 the
+    # policy holds a frozen copy of the pretrained encoder and denoiser (``base``) that runs the
+    # first K - K' steps of the chain; the trained ones run the last K'.
+    ft_denoising_steps: int = 0
 
     # -- critic (used by fine-tuning) ----------------------------------------------------------
     # V(z): MLP [256, 256, 256], Mish (paper).
@@ -87,6 +93,8 @@ class PDPOConfig(PreTrainedConfig):
             raise ValueError("human_mlp_dims[-1] must be divisible by attention_heads")
         if self.num_diffusion_steps < 1:
             raise ValueError("num_diffusion_steps must be >= 1")
+        if not 0 <= self.ft_denoising_steps <= self.num_diffusion_steps:
+            raise ValueError(f"ft_denoising_steps must be in [0, num_diffusion_steps={self.num_diffusion_steps}]")
         if not 0 < self.ema_decay < 1:
             raise ValueError("ema_decay must be in (0, 1)")
 

@@ -7,6 +7,9 @@ are in the processor's normalized units (state: mean/std; actions: [-1, 1]):
     x_k (B, H, 2), k (B,), z -> Denoiser -> predicted noise (B, H, 2)
     z -> ValueHead -> V (B,)               (trained by fine-tuning, not by BC)
 
+A fine-tuned policy (``ft_denoising_steps`` = K' > 0) also holds ``base``: the frozen pretrained
+encoder and denoiser that run the first K - K' denoising steps.
+
 The model knows how to encode, sample and score a chain; environments, buffers and optimizers
 belong to the trainers (lerobot-train for BC, lerobot_crowdnav.finetune for diffusion PPO).
 """
@@ -138,6 +141,9 @@ class PDPOPolicy(PreTrainedPolicy):
         if config.use_ema:
             self.ema = nn.ModuleDict({"encoder": copy.deepcopy(self.encoder),
                                       "denoiser": copy.deepcopy(self.denoiser)}).requires_grad_(False)
+        if config.ft_denoising_steps:  # frozen pretrained nets for the first K - K' denoising steps
+            self.base = nn.ModuleDict({"encoder": copy.deepcopy(self.encoder),
+                                       "denoiser": copy.deepcopy(self.denoiser)}).requires_grad_(False)
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
         betas = torch.tensor(cosine_beta_schedule(config.num_diffusion_steps), dtype=torch.float32)
         alphas_cumprod = torch.cumprod(1 - betas, dim=0)
@@ -193,8 +199,7 @@ class PDPOPolicy(PreTrainedPolicy):
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """A sampled chunk ``(B, H, 2)`` for each observation (normalized units; the
         postprocessor maps them to m/s)."""
-        encoder, denoiser = self._sampling_nets()
-        return self.sample(encoder(batch[OBS_STATE]), denoiser, generator=kwargs.get("generator"))
+        return self.sample(batch[OBS_STATE], generator=kwargs.get("generator"))
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
@@ -209,9 +214,7 @@ class PDPOPolicy(PreTrainedPolicy):
     def sample_chunks(self, batch: dict[str, Tensor], num_samples: int, generator: torch.Generator | None = None) -> Tensor:
         """``num_samples`` chunks per observation, ``(B, num_samples, H, 2)`` (multimodality)."""
         state = batch[OBS_STATE]
-        encoder, denoiser = self._sampling_nets()
-        z = encoder(state).repeat_interleave(num_samples, dim=0)
-        chunks = self.sample(z, denoiser, generator=generator)
+        chunks = self.sample(state.repeat_interleave(num_samples, dim=0), generator=generator)
         return chunks.view(state.shape[0], num_samples, self.config.horizon, 2)
 
     # -- diffusion -------------------------------------------------------------------------------
@@ -220,30 +223,75 @@ class PDPOPolicy(PreTrainedPolicy):
             return self.ema["encoder"], self.ema["denoiser"]
         return self.encoder, self.denoiser
 
-    def p_mean_std(self, denoiser: nn.Module, x: Tensor, k: int, z: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean and std of p(x_{k-1} | x_k): the DDPM posterior around the clamped x_0 estimate."""
-        kk = torch.full((x.shape[0],), k, device=x.device, dtype=torch.long)
-        eps = denoiser(x, kk, z)
-        x0 = self.sqrt_recip_alphas_cumprod[k] * x - self.sqrt_recipm1_alphas_cumprod[k] * eps
+    def p_mean_std(self, denoiser: nn.Module, x: Tensor, k: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean and std ``(B, 1, 1)`` of p(x_{k-1} | x_k) for per-sample steps ``k (B,)``: the DDPM
+        posterior around the x_0 estimate, clamped to [-denoised_clip_value, +denoised_clip_value]."""
+        eps = denoiser(x, k, z)
+        at = lambda buf: buf[k][:, None, None]  # noqa: E731
+        x0 = at(self.sqrt_recip_alphas_cumprod) * x - at(self.sqrt_recipm1_alphas_cumprod) * eps
         x0 = x0.clamp(-self.config.denoised_clip_value, self.config.denoised_clip_value)
-        mean = self.posterior_mean_coef1[k] * x0 + self.posterior_mean_coef2[k] * x
-        std = self.posterior_std[k].clamp(min=self.config.min_sampling_denoising_std)
-        return mean, std
+        mean = at(self.posterior_mean_coef1) * x0 + at(self.posterior_mean_coef2) * x
+        return mean, at(self.posterior_std)
 
-    def sample(self, z: Tensor, denoiser: nn.Module | None = None, generator: torch.Generator | None = None) -> Tensor:
-        """DDPM ancestral sampling from x_K ~ N(0, I); the last step adds no noise, noise is
-        clipped to +-3 (DPPO)."""
-        denoiser = denoiser or self.denoiser
-        shape = (z.shape[0], self.config.horizon, 2)
-        x = torch.randn(shape, device=z.device, generator=generator)
-        for k in reversed(range(self.config.num_diffusion_steps)):
-            mean, std = self.p_mean_std(denoiser, x, k, z)
-            if k == 0:
+    def sample(self, state: Tensor, generator: torch.Generator | None = None, exploration_std: float | None = None,
+               return_chain: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+        """DDPM ancestral sampling of a chunk ``(B, H, 2)`` in [-1, 1] from x_K ~ N(0, I); the
+        noise is clipped to +-3 (DPPO).
+
+        ``exploration_std=None``: the posterior std floored at ``min_sampling_denoising_std`` and
+        no noise at the last step (BC sampling, DPPO's deterministic evaluation). A float: the std
+        floored at it and noise at every step (DPPO's fine-tuning rollouts). A fine-tuned policy
+        (``ft_denoising_steps`` = K' > 0) runs steps k >= K' with the frozen ``base`` nets.
+        ``return_chain``: also the fine-tuned part of the chain, ``(B, K'+1, H, 2)`` = x_{K'} ..
+        x_0 (x_0 before the final clamp), which :meth:`chain_log_prob` scores."""
+        cfg = self.config
+        ft = cfg.ft_denoising_steps
+        if return_chain and not ft:
+            raise ValueError("return_chain needs a policy with ft_denoising_steps > 0")
+        encoder, denoiser = self._sampling_nets()
+        z = encoder(state)
+        z_base = self.base["encoder"](state) if 0 < ft < cfg.num_diffusion_steps else z
+        b = state.shape[0]
+        shape = (b, cfg.horizon, 2)
+        floor = cfg.min_sampling_denoising_std if exploration_std is None else exploration_std
+        x = torch.randn(shape, device=state.device, generator=generator)
+        chain = []
+        for k in reversed(range(cfg.num_diffusion_steps)):
+            if return_chain and k == ft - 1:
+                chain.append(x)
+            frozen = 0 < ft <= k
+            kk = torch.full((b,), k, device=state.device, dtype=torch.long)
+            mean, std = self.p_mean_std(self.base["denoiser"] if frozen else denoiser, x, kk, z_base if frozen else z)
+            if k == 0 and exploration_std is None:
                 x = mean
             else:
-                noise = torch.randn(shape, device=z.device, generator=generator).clamp(-3, 3)
-                x = mean + std * noise
-        return x.clamp(-1, 1)
+                noise = torch.randn(shape, device=state.device, generator=generator).clamp(-3, 3)
+                x = mean + std.clamp(min=floor) * noise
+            if return_chain and k < ft:
+                chain.append(x)
+        chunk = x.clamp(-1, 1)
+        return (chunk, torch.stack(chain, dim=1)) if return_chain else chunk
+
+    def chain_log_prob(self, state: Tensor, chain: Tensor, min_std: float) -> tuple[Tensor, Tensor]:
+        """Log-probabilities ``(B, K')`` of the fine-tuned transitions of stored chains
+        ``(B, K'+1, H, 2)`` under the trained encoder and denoiser, and the latent ``z (B, Z)``.
+
+        Each transition x_k -> x_{k-1} is Gaussian with the network's mean and the posterior std
+        floored at ``min_std``; the per-element log-density is clamped to [-5, 2] and averaged
+        over the chunk (DPPO). Index i = 0 is the noisiest fine-tuned step (k = K'-1), i = K'-1
+        the final one (k = 0). All K' steps run as one batched denoiser call."""
+        ft = self.config.ft_denoising_steps
+        b = state.shape[0]
+        if chain.shape[1:] != (ft + 1, self.config.horizon, 2):
+            raise ValueError(f"chain has shape {tuple(chain.shape)}, expected (B, {ft + 1}, {self.config.horizon}, 2)")
+        z = self.encoder(state)
+        k = torch.arange(ft - 1, -1, -1, device=state.device).repeat(b)  # (B*K',)
+        x_k = chain[:, :-1].reshape(b * ft, self.config.horizon, 2)
+        x_prev = chain[:, 1:].reshape(b * ft, self.config.horizon, 2)
+        mean, std = self.p_mean_std(self.denoiser, x_k, k, z.repeat_interleave(ft, dim=0))
+        dist = torch.distributions.Normal(mean, std.clamp(min=min_std))
+        logp = dist.log_prob(x_prev).clamp(-5, 2).mean(dim=(-2, -1))
+        return logp.view(b, ft), z
 
     def parameter_counts(self) -> dict[str, int]:
         """Actor = encoder + denoiser (paper: 0.848 M); critic = value head (paper: 0.201 M)."""

@@ -1,0 +1,252 @@
+"""Diffusion-PPO fine-tuning: the DPPO arithmetic, chain log-probabilities, the trainer's first
+ratio, checkpoints that load and evaluate, exact resume, bad input and the two-process path."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_processors
+
+from lerobot_crowdnav import finetune as ft
+from lerobot_crowdnav.collect import main as collect_main
+from lerobot_crowdnav.eval import main as eval_main
+from lerobot_crowdnav.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
+
+BIN = Path(sys.executable).parent
+SMALL = dict(human_mlp_dims=(32, 32), attention_heads=2, edge_mlp_dims=(64, 64), pool_mlp_dims=(32,),
+             latent_mlp_dims=(64, 32), denoiser_dims=(64, 64), value_mlp_dims=(32, 32))
+TINY_RUN = ["--num_envs=4", "--ppo.n_steps=8", "--ppo.batch_size=16", "--ppo.update_epochs=2",
+            "--ppo.n_critic_warmup_itr=1", "--val.n_episodes=2", "--save_freq=32", "--seed=3"]
+
+
+@pytest.fixture(scope="module")
+def pretrained(tmp_path_factory) -> Path:
+    """A small untrained PDPO checkpoint with real dataset statistics (as lerobot-train saves it)."""
+    root = tmp_path_factory.mktemp("ft")
+    collect_main(["--episodes=8", "--batch_size=8", f"--root={root / 'ds'}", "--repo_id=local/ft"])
+    stats = LeRobotDataset("local/ft", root=root / "ds").meta.stats
+    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
+                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu", **SMALL)
+    torch.manual_seed(0)
+    policy = PDPOPolicy(cfg)
+    out = root / "pretrained_model"
+    policy.save_pretrained(out)
+    for processor in make_pdpo_pre_post_processors(cfg, stats):
+        processor.save_pretrained(out)
+    return out
+
+
+def run(pretrained: Path, out: Path, *extra: str) -> list[dict]:
+    ft.main([f"--policy.path={pretrained}", f"--output_dir={out}", *TINY_RUN, *extra])
+    return [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]
+
+
+# -- DPPO arithmetic ------------------------------------------------------------------------------
+def test_clip_schedule_and_denoising_discount_values():
+    c = clip_coefficients(10, 0.001, 0.01, 3.0)
+    assert c[0] == pytest.approx(0.001) and c[-1] == pytest.approx(0.01)
+    assert c[5] == pytest.approx(0.001 + 0.009 * (math.exp(3 * 5 / 9) - 1) / (math.exp(3) - 1))
+    assert np.all(np.diff(c) > 0)
+    assert clip_coefficients(1, 0.001, 0.01, 3.0).tolist() == [0.01]
+    d = denoising_discounts(10, 0.99)
+    assert d[-1] == 1.0 and d[0] == pytest.approx(0.99**9) and d[3] == pytest.approx(0.99**6)
+
+
+def test_gae_matches_a_hand_computation_with_terminations_and_truncations():
+    g, lam = 0.9, 0.5
+    # env 0: terminates at t=1, then a new episode runs to the end (bootstrap from V after t=2);
+    # env 1: truncated at t=0 (bootstraps from its final observation's value 5), then runs on.
+    r = np.array([[1.0, 2.0], [3.0, 0.0], [0.5, 1.0]])
+    v = np.array([[0.2, 0.4], [0.1, 0.3], [0.6, 0.7]])
+    nv = np.array([[0.1, 5.0], [9.9, 0.7], [0.8, 0.9]])  # 9.9 must be ignored (termination)
+    term = np.array([[0, 0], [1, 0], [0, 0]], float)
+    done = np.array([[0, 1], [1, 0], [0, 0]], float)
+    adv, ret = gae(r, v, nv, term, done, g, lam)
+    # env 0 by hand
+    d2 = 0.5 + g * 0.8 - 0.6
+    d1 = 3.0 - 0.1
+    d0 = 1.0 + g * 0.1 - 0.2
+    a0 = [d0 + g * lam * d1, d1, d2]
+    # env 1 by hand
+    e2 = 1.0 + g * 0.9 - 0.7
+    e1 = 0.0 + g * 0.7 - 0.3 + g * lam * e2
+    e0 = 2.0 + g * 5.0 - 0.4
+    np.testing.assert_allclose(adv[:, 0], a0)
+    np.testing.assert_allclose(adv[:, 1], [e0, e1, e2])
+    np.testing.assert_allclose(ret, adv + v)
+
+
+def test_running_reward_scaler_divides_by_the_return_std_and_resets_on_done():
+    s = RunningRewardScaler(2, gamma=0.5, clip=10.0)
+    out = s(np.array([1.0, 2.0]), np.array([False, True]))
+    # returns [1, 2]: running var from the prior (mean 0, var 1, count 1e-4) and this batch
+    n = 1e-4 + 2
+    mean = 1.5 * 2 / n
+    var = (1e-4 + 0.25 * 2 + 1.5**2 * 1e-4 * 2 / n) / n
+    np.testing.assert_allclose(out, np.array([1.0, 2.0]) / math.sqrt(var + 1e-8))
+    assert s.mean == pytest.approx(mean) and s.ret.tolist() == [1.0, 0.0]
+    assert np.all(np.abs(s(np.array([1e9, -1e9]), np.array([False, False]))) <= 10.0)
+
+
+# -- chain log-probabilities -------------------------------------------------------------------
+def test_chain_log_prob_equals_an_independent_computation():
+    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
+                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu",
+                     ft_denoising_steps=4, use_ema=False, **SMALL)
+    torch.manual_seed(1)
+    policy = PDPOPolicy(cfg).eval()
+    state = torch.randn(3, 269)
+    state[:, -20:] = (torch.rand(3, 20) < 0.5).float()
+    chunk, chain = policy.sample(state, generator=torch.Generator().manual_seed(0), exploration_std=0.1,
+                                 return_chain=True)
+    assert chain.shape == (3, 5, 5, 2) and chunk.shape == (3, 5, 2)
+    torch.testing.assert_close(chunk, chain[:, -1].clamp(-1, 1))
+    logp, _ = policy.chain_log_prob(state, chain, min_std=0.1)
+
+    # Independent: the schedule from its formula in float64, the Gaussian density written out.
+    K = cfg.num_diffusion_steps
+    s = 0.008
+    x = np.linspace(0, K, K + 1)
+    ac = np.cos(((x / K) + s) / (1 + s) * np.pi / 2) ** 2
+    ac = ac / ac[0]
+    betas = np.clip(1 - ac[1:] / ac[:-1], 0, 0.999)
+    abar = np.cumprod(1 - betas)
+    abar_prev = np.concatenate([[1.0], abar[:-1]])
+    z = policy.encoder(state)
+    expected = np.zeros((3, 4))
+    for i, k in enumerate(range(3, -1, -1)):
+        xk = chain[:, i].double()
+        eps = policy.denoiser(chain[:, i], torch.full((3,), k), z).double()
+        x0 = (xk / math.sqrt(abar[k]) - math.sqrt(1 / abar[k] - 1) * eps).clamp(-1, 1)
+        mean = (betas[k] * math.sqrt(abar_prev[k]) * x0 + (1 - abar_prev[k]) * math.sqrt(1 - betas[k]) * xk) / (1 - abar[k])
+        std = max(math.sqrt(betas[k] * (1 - abar_prev[k]) / (1 - abar[k])), 0.1)
+        dens = -((chain[:, i + 1].double() - mean) ** 2) / (2 * std**2) - math.log(std) - 0.5 * math.log(2 * math.pi)
+        expected[:, i] = dens.clamp(-5, 2).mean(dim=(1, 2)).detach().numpy()
+    np.testing.assert_allclose(logp.detach().numpy(), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_frozen_base_runs_the_first_steps_and_trained_nets_the_last():
+    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
+                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu",
+                     ft_denoising_steps=5, use_ema=False, **SMALL)
+    policy = PDPOPolicy(cfg).eval()
+    state = torch.randn(2, 269)
+    state[:, -20:] = 1.0
+    sample = lambda: policy.sample(state, generator=torch.Generator().manual_seed(0), return_chain=True)[1]  # noqa: E731
+    before = sample()
+    with torch.no_grad():
+        policy.denoiser.net[-1].bias.add_(0.5)  # change the trained denoiser only
+    after = sample()
+    torch.testing.assert_close(before[:, 0], after[:, 0])  # x_{K'} comes from the frozen steps
+    assert not torch.allclose(before[:, 1:], after[:, 1:])
+    assert not any(p.requires_grad for p in policy.base.parameters())
+
+
+# -- the trainer ---------------------------------------------------------------------------------
+def test_first_minibatch_ratio_is_exactly_one(pretrained, tmp_path, monkeypatch):
+    seen = []
+    real = ft.ppo_losses
+
+    def spy(new_logp, old_logp, *args):
+        seen.append((new_logp.detach().clone(), old_logp.clone()))
+        return real(new_logp, old_logp, *args)
+
+    monkeypatch.setattr(ft, "ppo_losses", spy)
+    run(pretrained, tmp_path / "run", "--env_steps=32", "--ppo.n_critic_warmup_itr=0")
+    new, old = seen[0]
+    assert torch.equal(new, old)  # bitwise: ratio exactly 1
+    assert any(not torch.equal(n, o) for n, o in seen[1:])  # later minibatches see updated weights
+
+
+def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp_path):
+    out = tmp_path / "run"
+    records = run(pretrained, out, "--env_steps=64")
+    assert [r["iteration"] for r in records] == [0, 1, 2]
+    assert records[1]["critic_warmup"] == 1.0 and records[2]["critic_warmup"] == 0.0
+    for key in ("train/episodes", "loss/policy_loss", "loss/value_loss", "approx_kl", "clipfrac",
+                "explained_variance", "perf/env_steps_per_s"):
+        assert key in records[2]
+    assert "val/success_rate" in records[0] and "val/success_rate" in records[2]
+    ckpts = out / "checkpoints"
+    assert (ckpts / "last").resolve().name == "000000064"
+    assert (ckpts / "best" / "pretrained_model" / "model.safetensors").exists()
+    assert (out / "training_curves.png").stat().st_size > 10_000
+    assert any((out / "tensorboard").iterdir())
+
+    path = ckpts / "last" / "pretrained_model"
+    policy = PDPOPolicy.from_pretrained(path)
+    assert policy.config.ft_denoising_steps == 10 and not policy.config.use_ema
+    base = PDPOPolicy.from_pretrained(pretrained)
+    # frozen copy = the pretrained nets; trained nets moved; the value head is saved
+    for a, b in zip(policy.base["denoiser"].parameters(), base.denoiser.parameters(), strict=True):
+        torch.testing.assert_close(a, b)
+    assert any(not torch.equal(a, b) for a, b in zip(policy.denoiser.parameters(), base.denoiser.parameters(), strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(policy.value.parameters(), base.value.parameters(), strict=True))
+    eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", f"--output_dir={tmp_path / 'eval'}"])
+    assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
+
+
+def test_resume_continues_the_counter_and_reproduces_the_next_batch(pretrained, tmp_path):
+    straight = run(pretrained, tmp_path / "a", "--env_steps=64")
+    first = run(pretrained, tmp_path / "b", "--env_steps=32")
+    assert first[-1]["env_steps"] == 32
+    resumed = run(pretrained, tmp_path / "b", "--env_steps=64", "--resume=true")
+    assert [r["iteration"] for r in resumed] == [0, 1, 2]
+    assert resumed[2]["rollout_digest"] == straight[2]["rollout_digest"]
+    for key in ("loss/policy_loss", "loss/value_loss", "train/episodes"):
+        assert resumed[2][key] == straight[2][key]
+    with pytest.raises(SystemExit, match="different settings"):
+        run(pretrained, tmp_path / "b", "--env_steps=96", "--resume=true", "--ppo.gamma=0.9")
+
+
+def test_bad_input_is_refused_before_any_work(pretrained, tmp_path):
+    from lerobot.policies.act.configuration_act import ACTConfig
+
+    with pytest.raises(SystemExit, match="no config.json"):
+        run(tmp_path / "missing", tmp_path / "o1")
+    other = tmp_path / "act"
+    other.mkdir()
+    ACTConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
+              output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))})._save_pretrained(other)
+    with pytest.raises(SystemExit, match="'act' policy"):
+        run(other, tmp_path / "o2")
+    with pytest.raises(SystemExit, match="observations"):
+        run(pretrained, tmp_path / "o3", "--env.num_humans=10")
+    with pytest.raises(SystemExit, match="batch_size"):
+        run(pretrained, tmp_path / "o4", "--ppo.batch_size=1000")
+    (tmp_path / "o5").mkdir()
+    (tmp_path / "o5" / "keep.txt").write_text("x")
+    with pytest.raises(SystemExit, match="exists"):
+        run(pretrained, tmp_path / "o5")
+    assert (tmp_path / "o5" / "keep.txt").read_text() == "x"
+    for out in ("o1", "o2", "o3", "o4"):
+        assert not (tmp_path / out).exists()
+
+
+def test_accelerate_two_processes_run_one_iteration(pretrained, tmp_path):
+    out = tmp_path / "ddp"
+    # accelerate's DDP launcher; --device=cpu makes the processes join a gloo process group
+    cmd = [str(BIN / "accelerate"), "launch", "--multi_gpu", "--num_processes=2", "--num_machines=1",
+           "--mixed_precision=no", "--dynamo_backend=no", "-m", "lerobot_crowdnav.finetune",
+           f"--policy.path={pretrained}", f"--output_dir={out}", *TINY_RUN, "--env_steps=64", "--device=cpu"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "2 processes (MULTI_CPU)" in proc.stdout
+    records = [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]
+    assert records[-1]["env_steps"] == 64  # 2 processes x 4 envs x 8 steps in one iteration
+    assert len(records) == 2
+    state = out / "checkpoints" / "last" / "training_state"
+    assert (state / "env_rank0.npz").exists() and (state / "env_rank1.npz").exists()
+    config = json.loads((out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json").read_text())
+    assert config["world_size"] == 2
