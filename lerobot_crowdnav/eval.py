@@ -63,6 +63,8 @@ class PretrainedPolicyConfig(RobotPolicyConfig):
     device: str = "cpu"
     # Seed of the policy's sampling noise.
     seed: int = 0
+    # PDPO only: false samples with the raw trained weights instead of their EMA (an ablation).
+    use_ema: bool = True
 
     @property
     def name(self) -> str:
@@ -77,7 +79,7 @@ class LearnedPolicy:
     out. Chunks are sampled for the whole batch and each slot executes its first
     ``n_action_steps`` actions (1: replan every step) before taking the next chunk."""
 
-    def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0):
+    def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0, use_ema: bool = True):
         import torch
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -95,6 +97,8 @@ class LearnedPolicy:
                              f"{None if state is None else tuple(state.shape)}, the env gives ({obs_dim},)")
         self.torch = torch
         self.policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
+        if not use_ema and hasattr(cfg, "use_ema"):
+            cfg.use_ema = False  # after loading: the checkpoint's EMA weights stay, unused
         self.pre, self.post = make_pre_post_processors(cfg, pretrained_path=str(path))
         self.n_action_steps = getattr(cfg, "n_action_steps", 1)
         self.generator = torch.Generator(device=device).manual_seed(seed)
@@ -218,7 +222,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     if isinstance(cfg.policy, PretrainedPolicyConfig):
         if cfg.policy.path is None:
             raise ValueError("--policy.type=pretrained needs --policy.path")
-        actor = LearnedPolicy(cfg.policy.path, cfg.policy.device, sim_cfg.obs_dim, cfg.policy.seed)
+        actor = LearnedPolicy(cfg.policy.path, cfg.policy.device, sim_cfg.obs_dim, cfg.policy.seed, cfg.policy.use_ema)
     start = time.perf_counter()
     records = run_episodes(env, actor, cfg.eval.split, cfg.eval.n_episodes, label=policy)
     elapsed = time.perf_counter() - start

@@ -307,6 +307,8 @@ class Trainer:
                 raise ValueError("--policy.path=<pretrained PDPO checkpoint> is required")
             source = cfg.policy.path
         policy, self.pre, self.post = load_policy(source, cfg.ppo.ft_denoising_steps, cfg.seed)
+        # lerobot-train's record of the pretraining, carried into every checkpoint (provenance)
+        self.pretrain_config = Path(source) / "train_config.json"
         check_compatible(policy, self.sim_cfg)
         self.policy = policy.to(self.device).eval()  # eval: no dropout, so rollout and update agree
         self.ft = cfg.ppo.ft_denoising_steps
@@ -378,6 +380,8 @@ class Trainer:
         policy.save_pretrained(path)
         self.pre.save_pretrained(path)
         self.post.save_pretrained(path)
+        if self.pretrain_config.exists():
+            shutil.copy2(self.pretrain_config, path / "train_config.json")
         (path / "finetune_config.json").write_text(json.dumps(
             {**self._config_dict(), "world_size": self.world, "env_steps_done": self.env_steps}, indent=2))
 

@@ -84,7 +84,7 @@ def split_repo_id(repo_id: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
-def _parameter_counts(weights: Path) -> dict[str, int]:
+def parameter_counts(weights: Path) -> dict[str, int]:
     from safetensors import safe_open
 
     counts = {"actor": 0, "critic": 0}
@@ -111,7 +111,9 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
 
     config = json.loads((pretrained / "config.json").read_text())
     train = json.loads((pretrained / "train_config.json").read_text()) if (pretrained / "train_config.json").exists() else {}
-    counts = _parameter_counts(pretrained / "model.safetensors")
+    finetune_path = pretrained / "finetune_config.json"
+    finetune = json.loads(finetune_path.read_text()) if finetune_path.exists() else None
+    counts = parameter_counts(pretrained / "model.safetensors")
     dataset = (train.get("dataset") or {}).get("repo_id")
     lines = [
         f"# {repo_id}", "",
@@ -132,10 +134,22 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
         f"{counts['critic'] / 1e6:.3f} M (paper: 0.201 M).", "",
         "## Training", "",
         f"- Data: `{dataset}`" + (f" ({train.get('dataset', {}).get('root')})" if train else "") + ".",
-        f"- Budget: {train.get('steps')} steps at batch {train.get('batch_size')} "
-        f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}.", "",
-        "## Evaluation", "",
+        f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
+        f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}.",
     ]
+    if finetune:
+        ppo = finetune["ppo"]
+        lines += [
+            f"- Fine-tuning: diffusion PPO (DPPO) for {finetune['env_steps_done']} environment steps in "
+            f"`{finetune['env']['task']}` ({finetune['env']['preset']} preset), {finetune['num_envs']} envs x "
+            f"{finetune['world_size']} process(es), seed {finetune['seed']}: the last {ppo['ft_denoising_steps']} of "
+            f"{config.get('num_diffusion_steps')} denoising steps trained (a frozen copy of the pretrained nets runs "
+            f"the others; the model file holds both), actor lr {ppo['actor_lr']}, critic lr {ppo['critic_lr']}, "
+            f"batch {ppo['batch_size']} env steps x {ppo['ft_denoising_steps']} denoising steps, "
+            f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
+            "`finetune_config.json` has every setting.",
+        ]
+    lines += ["", "## Evaluation", ""]
     if metrics:
         bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
         lines += [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
@@ -167,7 +181,7 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
     if pickles:
         raise ValueError(f"refusing pickled files {pickles}: the hub format holds safetensors only")
     files = [p for p in pretrained.iterdir() if p.is_file() and (
-        p.name in ("config.json", "model.safetensors", "train_config.json")
+        p.name in ("config.json", "model.safetensors", "train_config.json", "finetune_config.json")
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
     card = policy_card(pretrained, repo_id, metrics)

@@ -250,3 +250,14 @@ def test_accelerate_two_processes_run_one_iteration(pretrained, tmp_path):
     assert (state / "env_rank0.npz").exists() and (state / "env_rank1.npz").exists()
     config = json.loads((out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json").read_text())
     assert config["world_size"] == 2
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "configs" / "finetune").glob("*.yaml")),
+                         ids=lambda p: p.stem)
+def test_finetune_configs_parse_and_validate(path):
+    import draccus
+
+    cfg = draccus.parse(ft.FinetuneConfig, config_path=str(path), args=[])
+    cfg.validate()
+    assert cfg.ppo.batch_size == 500 and cfg.ppo.ft_denoising_steps == 10 and cfg.ppo.update_epochs == 5
+    assert cfg.env.task in path.read_text() and cfg.policy.path is not None

@@ -1,0 +1,332 @@
+"""The main job, end to end: ``lerobot-crowdnav-main`` (``make main``).
+
+    lerobot-crowdnav-main                                          # embedded defaults, ~15 min on 2 CPU cores
+    lerobot-crowdnav-main --config_path=configs/main/paper.yaml    # the paper's budget (a GPU machine)
+
+For each task (Bounded and original CrowdNav): collect ORCA demonstrations -> pretrain PDPO with
+the stock ``lerobot-train`` (H = 5, and H = 1 for the "w/o action chunk" ablation) -> fine-tune
+each with diffusion PPO -> evaluate ORCA, straight and the PDPO policies on the same test seeds
+-> push the datasets and the fine-tuned policies to a hub-format directory -> figures; then
+``outputs/<run>/report.md`` with the tables (also as CSV), figures and, next to every number,
+the command, config and seed that produced it.
+
+Every stage runs the command a user would type (lerobot-train as a subprocess, this project's
+CLIs in-process) and is skipped when its output is complete; an interrupted stage resumes
+(collection, lerobot-train and fine-tuning from their last checkpoint). Evaluation is
+deterministic, so ``--rerun_eval=true`` regenerates identical tables from the saved checkpoints.
+
+    outputs/<run>/
+        datasets/<task>/               ORCA demonstrations (LeRobotDataset)
+        train/<task>_h<H>_s<seed>/     lerobot-train runs (checkpoints/last/pretrained_model)
+        finetune/<task>_h<H>_s<seed>/  diffusion-PPO runs (checkpoints/best/pretrained_model)
+        eval/<task>/<method>/          metrics.json (+ a GIF of the first test episode)
+        hub/                           datasets/<org>/<name>, models/<org>/<name>
+        figures/<task>/                storyboard, multimodality, fine-tuning curves
+        tables/*.csv, commands.json, report.md
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+
+from .config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
+
+SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
+TITLE = {"BoundedCrowdNav-v0": "Bounded CrowdNav", "CrowdNav-v0": "original CrowdNav"}
+
+
+@dataclass
+class MainConfig:
+    # Run name: everything goes to <output_root>/<run>/.
+    run: str = "main"
+    output_root: Path = Path("outputs")
+    # Benchmarks, each with its own demonstrations and policies.
+    tasks: list[str] = field(default_factory=lambda: ["BoundedCrowdNav-v0", "CrowdNav-v0"])
+    # Simulator preset (paper | crowdnavpp).
+    preset: str = "paper"
+    # ORCA demonstrations per task, successful episodes (paper: 3,000).
+    demos: int = 300
+    # Pretraining steps of lerobot-train at bc_batch_size; bc_epochs > 0 replaces it by that many
+    # epochs over the demonstrations (paper: 200 epochs at batch 128).
+    bc_steps: int = 400
+    bc_epochs: float = 0.0
+    bc_batch_size: int = 128
+    # lerobot-train data-loader workers (lerobot's default 4 oversubscribes a 2-core machine).
+    bc_num_workers: int = 2
+    # Chunk horizons: 5 = PDPO, 1 = the "w/o action chunk" ablation.
+    horizons: list[int] = field(default_factory=lambda: [5, 1])
+    # Diffusion-PPO budget per policy in env steps (paper: about 12 M), envs per process, rollout
+    # length, validation episodes and interval (env steps).
+    ft_env_steps: int = 8192
+    ft_num_envs: int = 32
+    ft_n_steps: int = 64
+    # Minibatch in env steps, each with its 10 denoising transitions (paper: 500).
+    ft_batch_size: int = 500
+    ft_val_episodes: int = 20
+    ft_val_freq: int = 4096
+    # Training seeds (pretraining and fine-tuning); tables show mean +- std over them.
+    seeds: list[int] = field(default_factory=lambda: [1000])
+    # Test episodes per method, the first seeds of the test split (paper: 500).
+    test_episodes: int = 100
+    # Figures: the test episode drawn, its steps and the chunks sampled per step.
+    figure_episode: int = 0
+    figure_steps: list[int] = field(default_factory=lambda: [0, 4, 8, 12, 16])
+    figure_samples: int = 32
+    # Organization of the hub-format repositories (<run>/hub/{datasets,models}/<org>/...).
+    hub_org: str = "local"
+    # Torch device for training and evaluation (default: cuda when available, else cpu).
+    device: str | None = None
+    # Evaluate again even when metrics exist (the tables come out identical: evaluation is deterministic).
+    rerun_eval: bool = False
+
+    def validate(self) -> None:
+        bad = [t for t in self.tasks if t not in TASKS]
+        if bad or not self.tasks:
+            raise ValueError(f"--tasks must be a non-empty subset of {list(TASKS)}, got {self.tasks}")
+        if not self.horizons or any(h < 1 for h in self.horizons):
+            raise ValueError(f"--horizons must be positive, got {self.horizons}")
+        if not self.seeds:
+            raise ValueError("--seeds needs at least one seed")
+        for name in ("demos", "bc_steps", "bc_batch_size", "ft_env_steps", "ft_num_envs", "ft_n_steps", "ft_batch_size",
+                     "ft_val_episodes", "test_episodes", "figure_samples"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
+        test_size = SEED_SPLITS["test"][1] - SEED_SPLITS["test"][0]
+        if self.test_episodes > test_size or not 0 <= self.figure_episode < test_size:
+            raise ValueError(f"--test_episodes and --figure_episode must fit the {test_size} test seeds")
+
+    @property
+    def root(self) -> Path:
+        return self.output_root / self.run
+
+
+class Pipeline:
+    def __init__(self, cfg: MainConfig):
+        cfg.validate()
+        self.cfg = cfg
+        self.root = cfg.root
+        self.commands: dict[str, list[str]] = {}
+        self.timings: dict[str, float] = {}
+        self.device = cfg.device
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _stage(self, name: str, argv: list[str], done: bool, run) -> None:
+        """Record the stage's command; run it unless its output is complete."""
+        self.commands[name] = argv
+        if done:
+            print(f"[main] {name}: complete, skipped")
+            return
+        print(f"[main] {name}: {' '.join(argv)}", flush=True)
+        start = time.perf_counter()
+        run()
+        self.timings[name] = time.perf_counter() - start
+
+    def _env_flags(self, task: str) -> list[str]:
+        return [f"--env.task={task}", f"--env.preset={self.cfg.preset}"]
+
+    def dataset_root(self, task: str) -> Path:
+        return self.root / "datasets" / SHORT[task]
+
+    def repo_id(self, task: str) -> str:
+        return f"{self.cfg.hub_org}/crowdnav_orca_{SHORT[task]}"
+
+    def train_dir(self, task: str, h: int, seed: int) -> Path:
+        return self.root / "train" / f"{SHORT[task]}_h{h}_s{seed}"
+
+    def finetune_dir(self, task: str, h: int, seed: int) -> Path:
+        return self.root / "finetune" / f"{SHORT[task]}_h{h}_s{seed}"
+
+    # -- stages --------------------------------------------------------------------------------
+    def collect(self, task: str) -> None:
+        from .collect import main as collect_main
+
+        root = self.dataset_root(task)
+        info = root / "meta" / "info.json"
+        done = info.exists() and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
+        argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
+                f"--repo_id={self.repo_id(task)}", f"--root={root}"]
+        resume = ["--resume=true"] if root.exists() else []
+        self._stage(f"collect {SHORT[task]}", argv, done, lambda: collect_main(argv[2:] + resume))
+
+    def bc_steps(self, task: str) -> int:
+        if self.cfg.bc_epochs <= 0:
+            return self.cfg.bc_steps
+        frames = json.loads((self.dataset_root(task) / "meta" / "info.json").read_text())["total_frames"]
+        return math.ceil(self.cfg.bc_epochs * frames / self.cfg.bc_batch_size)
+
+    def pretrain(self, task: str, h: int, seed: int) -> None:
+        out = self.train_dir(task, h, seed)
+        steps = self.bc_steps(task)
+        last = out / "checkpoints" / "last"
+        step_file = last / "training_state" / "training_step.json"
+        done = step_file.exists() and json.loads(step_file.read_text())["step"] >= steps
+        argv = ["lerobot-train", "--policy.type=pdpo", f"--policy.horizon={h}", f"--dataset.repo_id={self.repo_id(task)}",
+                f"--dataset.root={self.dataset_root(task)}", "--policy.push_to_hub=false", f"--output_dir={out}",
+                f"--steps={steps}", f"--batch_size={self.cfg.bc_batch_size}", f"--save_freq={max(1, steps // 4)}",
+                f"--log_freq={max(1, min(200, steps // 10))}", f"--num_workers={self.cfg.bc_num_workers}",
+                f"--seed={seed}", "--wandb.enable=false", f"--job_name={out.name}"]
+        if self.device:
+            argv.append(f"--policy.device={self.device}")
+
+        def run() -> None:
+            cmd = list(argv)
+            if last.exists():  # interrupted: lerobot-train resumes from its last checkpoint
+                cmd = ["lerobot-train", f"--config_path={last / 'pretrained_model' / 'train_config.json'}", "--resume=true"]
+            elif out.exists():
+                shutil.rmtree(out)  # started but never checkpointed: lerobot-train refuses an existing dir
+            cmd[0] = str(Path(sys.executable).parent / "lerobot-train")
+            subprocess.run(cmd, check=True)
+
+        self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, done, run)
+
+    def finetune(self, task: str, h: int, seed: int) -> None:
+        from .finetune import main as finetune_main
+
+        out = self.finetune_dir(task, h, seed)
+        saved = out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
+        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= self.cfg.ft_env_steps
+        c = self.cfg
+        argv = ["lerobot-crowdnav-finetune",
+                f"--policy.path={self.train_dir(task, h, seed) / 'checkpoints' / 'last' / 'pretrained_model'}",
+                *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={c.ft_env_steps}",
+                f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
+                f"--save_freq={max(c.ft_val_freq, c.ft_env_steps // 4)}", f"--seed={seed}", f"--output_dir={out}"]
+        if self.device:
+            argv.append(f"--device={self.device}")
+        resume = ["--resume=true"] if saved.exists() else []
+        self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
+
+    def methods(self, task: str) -> list[tuple[str, str, list[tuple[str, Path | None]]]]:
+        """(label, slug, [(eval name, policy path or None for a built-in)]) per table row."""
+        seeds, hs = self.cfg.seeds, self.cfg.horizons
+        rows = [("ORCA", "orca", [("orca", None)]), ("straight", "straight", [("straight", None)])]
+        h_main = 5 if 5 in hs else hs[0]
+        rows.append((f"PDPO pretrained only (H = {h_main}, BC)", f"pdpo_bc_h{h_main}",
+                     [(f"pdpo_bc_h{h_main}_s{s}", self.train_dir(task, h_main, s) / "checkpoints" / "last" / "pretrained_model")
+                      for s in seeds]))
+        for h in sorted(hs):
+            label = "PDPO w/o action chunk (H = 1, fine-tuned)" if h == 1 else f"PDPO (H = {h}, fine-tuned)"
+            rows.append((label, f"pdpo_ft_h{h}",
+                         [(f"pdpo_ft_h{h}_s{s}", self.finetune_dir(task, h, s) / "checkpoints" / "best" / "pretrained_model")
+                          for s in seeds]))
+        return rows
+
+    def eval_dir(self, task: str, name: str) -> Path:
+        return self.root / "eval" / SHORT[task] / name
+
+    def evaluate(self, task: str, name: str, path: Path | None) -> None:
+        from .eval import main as eval_main
+
+        out = self.eval_dir(task, name)
+        metrics = out / "metrics.json"
+        policy = [f"--policy.type={name}"] if path is None else [f"--policy.path={path}"]
+        if self.device and path is not None:
+            policy.append(f"--policy.device={self.device}")
+        argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), f"--eval.n_episodes={self.cfg.test_episodes}",
+                "--eval.split=test", f"--eval.batch_size={min(256, self.cfg.test_episodes)}", "--eval.n_videos=1",
+                f"--output_dir={out}", "--overwrite=true"]
+        done = (not self.cfg.rerun_eval and metrics.exists()
+                and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
+        self._stage(f"eval {SHORT[task]} {name}", argv, done, lambda: eval_main(argv[1:]))
+
+    def push(self, task: str) -> None:
+        from .hub import push_dataset_to_dir, push_policy_to_dir
+
+        hub = self.root / "hub"
+        repo = self.repo_id(task)
+        target = hub / "datasets" / repo
+        argv = ["python", "-m", "lerobot_crowdnav.hub", "--kind=dataset", f"--root={self.dataset_root(task)}",
+                f"--repo_id={repo}", f"--push_to_hub_dir={hub}", "--overwrite=true"]
+        self._stage(f"push dataset {SHORT[task]}", argv, target.exists(),
+                    lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
+        for h in self.cfg.horizons:
+            seed = self.cfg.seeds[0]
+            policy_repo = f"{self.cfg.hub_org}/pdpo_{SHORT[task]}_h{h}"
+            pretrained = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model"
+            metrics = self.eval_dir(task, f"pdpo_ft_h{h}_s{seed}") / "metrics.json"
+            argv = ["python", "-m", "lerobot_crowdnav.hub", "--kind=policy", f"--root={pretrained}",
+                    f"--repo_id={policy_repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
+            self._stage(f"push policy {SHORT[task]} H={h}", argv, (hub / "models" / policy_repo).exists() and not self.cfg.rerun_eval,
+                        lambda p=pretrained, r=policy_repo, m=metrics: push_policy_to_dir(p, r, hub, True, m))
+
+    def figures(self, task: str) -> dict[str, Path]:
+        from .figures import record_snapshots
+        from .plots import plot_finetune_curves, plot_multimodality, plot_storyboard
+
+        out = self.root / "figures" / SHORT[task]
+        seed = self.cfg.seeds[0]
+        h_main = 5 if 5 in self.cfg.horizons else self.cfg.horizons[0]
+        policy = self.finetune_dir(task, h_main, seed) / "checkpoints" / "best" / "pretrained_model"
+        episode_seed = split_seeds("test", self.cfg.figure_episode + 1)[-1]
+        paths = {"storyboard": out / "storyboard.png", "multimodality": out / "multimodality.png",
+                 "curves": out / "finetune_curves.png"}
+        steps = ",".join(map(str, self.cfg.figure_steps))
+        argv = ["python", "-m", "lerobot_crowdnav.figures", f"--policy.path={policy}", *self._env_flags(task),
+                f"--seed={episode_seed}", f"--steps={steps}", f"--n_samples={self.cfg.figure_samples}", f"--output_dir={out}"]
+
+        def run() -> None:
+            sim_cfg = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve()
+            snaps = record_snapshots(policy, sim_cfg, episode_seed, self.cfg.figure_steps, self.cfg.figure_samples,
+                                     device=self.device or "cpu")
+            walls = sim_cfg.arena_size if sim_cfg.bounded else None
+            plot_storyboard(snaps, paths["storyboard"], sim_cfg.sensing_range, sim_cfg.dt, arena_size=walls,
+                            title=f"{TITLE[task]}, test episode {episode_seed}: PDPO (H = {h_main}, fine-tuned)")
+            plot_multimodality(snaps, paths["multimodality"], sim_cfg.sensing_range, sim_cfg.dt, arena_size=walls,
+                               title=f"{TITLE[task]}, test episode {episode_seed}: {self.cfg.figure_samples} chunks "
+                                     "sampled per observation")
+            runs = {}
+            for h in sorted(self.cfg.horizons, reverse=True):
+                progress = self.finetune_dir(task, h, seed) / "progress.jsonl"
+                label = "PDPO w/o action chunk (H = 1)" if h == 1 else f"PDPO (H = {h})"
+                runs[label] = [json.loads(line) for line in progress.read_text().splitlines()]
+            plot_finetune_curves(runs, paths["curves"])
+
+        self._stage(f"figures {SHORT[task]}", argv, all(p.exists() for p in paths.values()) and not self.cfg.rerun_eval, run)
+        return paths
+
+    # -- the whole job -------------------------------------------------------------------------
+    def run(self) -> Path:
+        start = time.perf_counter()
+        self.root.mkdir(parents=True, exist_ok=True)
+        (self.root / "main_config.json").write_text(json.dumps(draccus.encode(self.cfg), indent=2, default=str))
+        for task in self.cfg.tasks:
+            self.collect(task)
+            for seed in self.cfg.seeds:
+                for h in self.cfg.horizons:
+                    self.pretrain(task, h, seed)
+                    self.finetune(task, h, seed)
+            for _, _, evals in self.methods(task):
+                for name, path in evals:
+                    self.evaluate(task, name, path)
+            self.push(task)
+            self.figures(task)
+        from .report import write_report
+
+        report = write_report(self, time.perf_counter() - start)
+        print(f"[main] report: {report}")
+        return report
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=MainConfig, args=argv)
+    try:
+        Pipeline(cfg).run()
+    except (ValueError, FileExistsError, FileNotFoundError) as e:
+        raise SystemExit(f"error: {e}") from None
+    except subprocess.CalledProcessError as e:
+        raise SystemExit(f"error: stage command failed ({e.returncode}): {' '.join(map(str, e.cmd))}; rerun to resume") from None
+    except KeyboardInterrupt:
+        raise SystemExit("interrupted: rerun the same command to resume (complete stages are skipped)") from None
+
+
+if __name__ == "__main__":
+    main()

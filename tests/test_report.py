@@ -1,0 +1,84 @@
+"""Table generation on hand-made metrics, and the main job end to end in a tiny configuration."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from lerobot_crowdnav.pipeline import main as pipeline_main
+from lerobot_crowdnav.report import Row, boundary_audit, csv_table, markdown_table, parameter_table
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def metrics(sr, nt, pl, itr, sd, episodes=()):
+    return {"sr": sr, "nt": nt, "pl": pl, "itr": itr, "sd": sd, "cr": 1 - sr, "tr": 0.0, "oob": None,
+            "episodes": [{"event": e, "out_of_bounds": o} for e, o in episodes]}
+
+
+def test_tables_from_hand_made_metrics():
+    rows = [Row("ORCA", [metrics(0.662, 20.94, 13.17, 0.0918, 0.32)]),
+            Row("PDPO", [metrics(0.5, 10.0, 8.0, 0.1, 0.3), metrics(0.7, 12.0, 9.0, 0.05, None)]),
+            Row("never succeeds", [metrics(0.0, None, 5.0, 0.0, None)])]
+    md = markdown_table(rows).splitlines()
+    assert md[0] == "| Method | SR (%) | NT (s) | PL (m) | ITR (%) | SD (m) |"
+    assert md[2] == "| ORCA | 66.2 | 20.94 | 13.17 | 9.18 | 0.32 |"
+    # two seeds: mean +- population std; SD defined for one seed only -> that value, no spread
+    assert md[3] == "| PDPO | 60.0 ± 10.0 | 11.00 ± 1.00 | 8.50 ± 0.50 | 7.50 ± 2.50 | 0.30 ± 0.00 |"
+    assert md[4] == "| never succeeds | 0.0 | n/a | 5.00 | 0.00 | n/a |"
+    table = list(csv.DictReader(io.StringIO(csv_table(rows))))
+    assert table[1]["method"] == "PDPO" and table[1]["n_seeds"] == "2"
+    assert float(table[1]["SR_mean"]) == pytest.approx(60.0) and float(table[1]["SR_std"]) == pytest.approx(10.0)
+    assert table[2]["NT_mean"] == "" and table[2]["SD_std"] == ""
+
+
+def test_boundary_audit_counts_successful_episodes_only():
+    rows = [Row("ORCA", [metrics(0.75, 1, 1, 0, 0, [("success", True), ("success", False), ("success", False),
+                                                     ("human_collision", True)])]),
+            Row("PDPO", [metrics(0.0, None, 1, 0, 0, [("timeout", True)])])]
+    md, text = boundary_audit(rows)
+    assert "| ORCA | 3 | 1 | 33.3 |" in md and "| PDPO | 0 | 0 | n/a |" in md
+    assert list(csv.reader(io.StringIO(text)))[1] == ["ORCA", "3", "1", "33.3333"]
+    md, text = parameter_table({"PDPO": {"actor": 832_000, "critic": 198_000}})
+    assert "| PDPO | 0.832 | 0.198 |" in md and "| paper (PDPO) | 0.848 | 0.201 |" in md
+
+
+def test_main_job_runs_end_to_end_in_a_tiny_configuration(tmp_path):
+    argv = [f"--config_path={CONFIGS / 'main' / 'tiny.yaml'}", f"--output_root={tmp_path}"]
+    pipeline_main(argv)
+    root = tmp_path / "tiny"
+    report = (root / "report.md").read_text()
+    for section in ("## Budget", "## Bounded CrowdNav", "## original CrowdNav", "### Boundary audit",
+                    "## Parameter counts", "## Figures", "## Stages", "## Reproduce"):
+        assert section in report, section
+    methods = ["ORCA", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
+               "PDPO (H = 5, fine-tuned)"]
+    for name in ("results_bounded.csv", "results_original.csv", "boundary_audit.csv"):
+        rows = list(csv.DictReader(io.StringIO((root / "tables" / name).read_text())))
+        assert [r["method"] for r in rows] == methods, name
+    for label in methods:
+        assert f"| {label} | " in report
+    assert (root / "tables" / "parameters.csv").read_text().count("\n") == 1 + 4  # 2 tasks x 2 fine-tuned policies
+    for task in ("bounded", "original"):
+        for fig in ("storyboard.png", "multimodality.png", "finetune_curves.png"):
+            assert (root / "figures" / task / fig).stat().st_size > 5_000
+        assert list((root / "eval" / task / "orca" / "videos").glob("*.gif"))
+        assert (root / "hub" / "models" / "local" / f"pdpo_{task}_h5" / "model.safetensors").exists()
+        assert (root / "hub" / "datasets" / "local" / f"crowdnav_orca_{task}" / "meta" / "info.json").exists()
+    commands = json.loads((root / "commands.json").read_text())
+    assert commands["pretrain bounded H=5 seed=1000"][0] == "lerobot-train"
+    tables = {p.name: p.read_text() for p in (root / "tables").iterdir()}
+
+    # A rerun skips every stage; re-evaluating the saved checkpoints gives identical tables.
+    shutil.rmtree(root / "eval" / "bounded" / "pdpo_ft_h5_s1000")
+    pipeline_main(argv)
+    assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
+    rerun = (root / "report.md").read_text()
+    assert "| pretrain bounded H=5 seed=1000 |" in rerun and "skipped (complete)" in rerun
+    pipeline_main(argv + ["--rerun_eval=true"])
+    assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
