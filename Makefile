@@ -12,10 +12,11 @@ $(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/le
 	$(PY) -m pip install --quiet -e ".[test]" -e plugins/lerobot_env_crowdnav -e policies/lerobot_policy_pdpo
 	@touch $@
 
-# The main job, on embedded defaults: the ORCA robot on the 500 test episodes of Bounded CrowdNav.
+# The main job on embedded defaults (about 15 min on 2 CPU cores): ORCA demonstrations ->
+# lerobot-train -> diffusion PPO -> evaluation -> hub-format pushes -> outputs/main/report.md.
+# Rerunning skips complete stages; MAIN_ARGS passes flags, e.g. MAIN_ARGS=--config_path=configs/main/paper.yaml
 main: $(STAMP)
-	$(VENV)/bin/lerobot-crowdnav-eval --policy.type=orca --env.task=BoundedCrowdNav-v0 \
-		--eval.n_episodes=500 --eval.n_videos=1 --output_dir=outputs/main/orca_bounded --overwrite=true
+	$(VENV)/bin/lerobot-crowdnav-main $(MAIN_ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -15,10 +15,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
 import numpy as np
 from tqdm import tqdm
 
+from .cli import run_cli
 from .config import SEED_SPLITS, CrowdSimConfig
 from .dataset import DemonstrationWriter, outcome_counts
 from .hub import dataset_card, push_dataset_to_dir, split_repo_id
@@ -163,13 +163,7 @@ def _size_mb(root: Path) -> float:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=CollectConfig, args=argv)
-    try:
-        collect(cfg)
-    except (ValueError, FileExistsError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}") from None
-    except KeyboardInterrupt:
-        raise SystemExit("interrupted: the committed episodes are saved; rerun with --resume=true to complete") from None
+    run_cli(CollectConfig, collect, argv, "the committed episodes are saved; rerun with --resume=true to complete")
 
 
 if __name__ == "__main__":

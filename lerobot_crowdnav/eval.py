@@ -24,6 +24,7 @@ import draccus
 import numpy as np
 from tqdm import tqdm
 
+from .cli import run_cli
 from .config import SEED_SPLITS, CrowdSimConfig, split_seeds
 from .envs import CrowdNavEnv, CrowdNavVectorEnv
 from .metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
@@ -263,11 +264,7 @@ def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a.startswith("--policy.path") for a in argv) and not any(a.startswith("--policy.type") for a in argv):
         argv.insert(0, "--policy.type=pretrained")  # lerobot-style --policy.path=<checkpoint>
-    cfg = draccus.parse(config_class=EvalConfig, args=argv)
-    try:
-        evaluate(cfg)
-    except (ValueError, FileExistsError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}") from None
+    run_cli(EvalConfig, evaluate, argv)
 
 
 if __name__ == "__main__":

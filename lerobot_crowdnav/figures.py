@@ -13,13 +13,11 @@ chunks): see :func:`lerobot_crowdnav.plots.plot_storyboard` and ``plot_multimoda
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
-import numpy as np
 
+from .cli import run_cli
 from .config import SEED_SPLITS, CrowdSimConfig
 from .envs import CrowdNavEnv
 from .eval import LearnedPolicy
@@ -130,13 +128,7 @@ def make_figures(cfg: FiguresConfig) -> tuple[Path, Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=FiguresConfig, args=list(sys.argv[1:] if argv is None else argv))
-    try:
-        paths = make_figures(cfg)
-    except (ValueError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}") from None
-    for path in paths:
-        print(f"wrote {path}")
+    run_cli(FiguresConfig, lambda cfg: [print(f"wrote {path}") for path in make_figures(cfg)], argv)
 
 
 if __name__ == "__main__":

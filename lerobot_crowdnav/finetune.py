@@ -32,7 +32,6 @@ import json
 import math
 import os
 import shutil
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +42,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from .cli import run_cli
 from .config import SEED_SPLITS, CrowdSimConfig
 from .envs import CrowdNavVectorEnv
 from .eval import json_safe, run_episodes
@@ -627,14 +627,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    cfg = draccus.parse(config_class=FinetuneConfig, args=argv)
-    try:
-        finetune(cfg)
-    except (ValueError, FileExistsError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}") from None
-    except KeyboardInterrupt:
-        raise SystemExit("interrupted: rerun the same command with --resume=true to continue from the last checkpoint") from None
+    run_cli(FinetuneConfig, finetune, argv, "rerun the same command with --resume=true to continue from the last checkpoint")
 
 
 if __name__ == "__main__":

@@ -18,9 +18,9 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-import draccus
 from lerobot.datasets.utils import create_lerobot_dataset_card
 
+from .cli import run_cli
 from .config import CrowdSimConfig
 from .dataset import FPS
 
@@ -212,19 +212,19 @@ class PushConfig:
     metrics: Path | None = None
 
 
+def push(cfg: PushConfig) -> None:
+    if cfg.root is None or cfg.push_to_hub_dir is None or not cfg.repo_id:
+        raise ValueError("--root, --repo_id and --push_to_hub_dir are required")
+    if cfg.kind == "dataset":
+        print(push_dataset_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite))
+    elif cfg.kind == "policy":
+        print(push_policy_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite, cfg.metrics))
+    else:
+        raise ValueError(f"--kind must be dataset or policy, got {cfg.kind!r}")
+
+
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=PushConfig, args=argv)
-    try:
-        if cfg.root is None or cfg.push_to_hub_dir is None or not cfg.repo_id:
-            raise ValueError("--root, --repo_id and --push_to_hub_dir are required")
-        if cfg.kind == "dataset":
-            print(push_dataset_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite))
-        elif cfg.kind == "policy":
-            print(push_policy_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite, cfg.metrics))
-        else:
-            raise ValueError(f"--kind must be dataset or policy, got {cfg.kind!r}")
-    except (FileExistsError, FileNotFoundError, ValueError) as e:
-        raise SystemExit(f"error: {e}") from None
+    run_cli(PushConfig, push, argv)
 
 
 if __name__ == "__main__":

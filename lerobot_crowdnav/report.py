@@ -158,7 +158,10 @@ def write_report(pipeline, wall_time_s: float) -> Path:
                 if path is not None and "fine-tuned" in label:
                     h, seed = name.split("_")[2][1:], name.split("_")[3][1:]
                     notes.append(f"  - pretrained by `{cmd(f'pretrain {short} H={h} seed={seed}')}`")
-                    notes.append(f"  - fine-tuned by `{cmd(f'finetune {short} H={h} seed={seed}')}` (checkpoint `best`)")
+                    best = json.loads((path.parent / "best.json").read_text())
+                    notes.append(f"  - fine-tuned by `{cmd(f'finetune {short} H={h} seed={seed}')}`; checkpoint `best` "
+                                 f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
+                                 + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
                     counts[f"{TITLE[task]}: {label}, seed {seed}"] = parameter_counts(path / "model.safetensors")
                 elif path is not None:
                     h, seed = name.split("_")[2][1:], name.split("_")[3][1:]

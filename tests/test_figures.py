@@ -7,14 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
-from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_processors
+from conftest import make_tiny_checkpoint
 from PIL import Image
 
 from lerobot_crowdnav import figures
-from lerobot_crowdnav.collect import main as collect_main
 from lerobot_crowdnav.config import CrowdSimConfig
 from lerobot_crowdnav.envs import CrowdNavEnv, structured
 from lerobot_crowdnav.plots import chunk_positions, plot_multimodality, plot_storyboard
@@ -22,8 +18,6 @@ from lerobot_crowdnav.plots import chunk_positions, plot_multimodality, plot_sto
 SENSING, DT = 6.0, 0.25
 # Pixel sizes: panels of 3.2 x 3.4 in, a 0.6 in legend band, 0.3 in for a title, at 150 dpi.
 PANEL_W, PANEL_H, LEGEND_H, TITLE_H = 480, 510, 90, 45
-SMALL = dict(human_mlp_dims=(32, 32), attention_heads=2, edge_mlp_dims=(64, 64), pool_mlp_dims=(32,),
-             latent_mlp_dims=(64, 32), denoiser_dims=(64, 64), value_mlp_dims=(32, 32))
 
 
 def make_obs(robot=(1.0, -2.0), goal=(3.0, 0.0), humans=(), hidden=()) -> np.ndarray:
@@ -115,20 +109,7 @@ def test_empty_snapshots_are_refused(tmp_path):
 # -- end to end on a tiny checkpoint --------------------------------------------------------------
 @pytest.fixture(scope="module")
 def pretrained(tmp_path_factory) -> Path:
-    """A small untrained PDPO checkpoint with real dataset statistics (as lerobot-train saves it)."""
-    root = tmp_path_factory.mktemp("fig")
-    collect_main(["--episodes=8", "--batch_size=8", f"--root={root / 'ds'}", "--repo_id=local/fig"])
-    stats = LeRobotDataset("local/fig", root=root / "ds").meta.stats
-    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
-                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu",
-                     num_diffusion_steps=5, **SMALL)
-    torch.manual_seed(0)
-    policy = PDPOPolicy(cfg)
-    out = root / "pretrained_model"
-    policy.save_pretrained(out)
-    for processor in make_pdpo_pre_post_processors(cfg, stats):
-        processor.save_pretrained(out)
-    return out
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("fig"), num_diffusion_steps=5)
 
 
 SIM = CrowdSimConfig(task="BoundedCrowdNav-v0", compute_intrusion=False)

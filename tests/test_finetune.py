@@ -14,36 +14,22 @@ import numpy as np
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_processors
+from lerobot_policy_pdpo import PDPOPolicy
 
 from lerobot_crowdnav import finetune as ft
-from lerobot_crowdnav.collect import main as collect_main
 from lerobot_crowdnav.eval import main as eval_main
 from lerobot_crowdnav.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
 
+from conftest import make_tiny_checkpoint, small_pdpo_config
+
 BIN = Path(sys.executable).parent
-SMALL = dict(human_mlp_dims=(32, 32), attention_heads=2, edge_mlp_dims=(64, 64), pool_mlp_dims=(32,),
-             latent_mlp_dims=(64, 32), denoiser_dims=(64, 64), value_mlp_dims=(32, 32))
 TINY_RUN = ["--num_envs=4", "--ppo.n_steps=8", "--ppo.batch_size=16", "--ppo.update_epochs=2",
             "--ppo.n_critic_warmup_itr=1", "--val.n_episodes=2", "--save_freq=32", "--seed=3"]
 
 
 @pytest.fixture(scope="module")
 def pretrained(tmp_path_factory) -> Path:
-    """A small untrained PDPO checkpoint with real dataset statistics (as lerobot-train saves it)."""
-    root = tmp_path_factory.mktemp("ft")
-    collect_main(["--episodes=8", "--batch_size=8", f"--root={root / 'ds'}", "--repo_id=local/ft"])
-    stats = LeRobotDataset("local/ft", root=root / "ds").meta.stats
-    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
-                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu", **SMALL)
-    torch.manual_seed(0)
-    policy = PDPOPolicy(cfg)
-    out = root / "pretrained_model"
-    policy.save_pretrained(out)
-    for processor in make_pdpo_pre_post_processors(cfg, stats):
-        processor.save_pretrained(out)
-    return out
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("ft"))
 
 
 def run(pretrained: Path, out: Path, *extra: str) -> list[dict]:
@@ -100,9 +86,7 @@ def test_running_reward_scaler_divides_by_the_return_std_and_resets_on_done():
 
 # -- chain log-probabilities -------------------------------------------------------------------
 def test_chain_log_prob_equals_an_independent_computation():
-    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
-                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu",
-                     ft_denoising_steps=4, use_ema=False, **SMALL)
+    cfg = small_pdpo_config(ft_denoising_steps=4, use_ema=False)
     torch.manual_seed(1)
     policy = PDPOPolicy(cfg).eval()
     state = torch.randn(3, 269)
@@ -136,9 +120,7 @@ def test_chain_log_prob_equals_an_independent_computation():
 
 
 def test_frozen_base_runs_the_first_steps_and_trained_nets_the_last():
-    cfg = PDPOConfig(input_features={"observation.state": PolicyFeature(FeatureType.STATE, (269,))},
-                     output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu",
-                     ft_denoising_steps=5, use_ema=False, **SMALL)
+    cfg = small_pdpo_config(ft_denoising_steps=5, use_ema=False)
     policy = PDPOPolicy(cfg).eval()
     state = torch.randn(2, 269)
     state[:, -20:] = 1.0

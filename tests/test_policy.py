@@ -214,6 +214,11 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
                f"--output_dir={tmp_path / 'crowdnav_eval'}"])
     metrics = json.loads((tmp_path / "crowdnav_eval" / "metrics.json").read_text())
     assert metrics["n_episodes"] == 4 and metrics["policy"] == "train@000020"
+    from lerobot_crowdnav.eval import LearnedPolicy
+
+    with_ema, raw = LearnedPolicy(ckpt, "cpu", 269), LearnedPolicy(ckpt, "cpu", 269, use_ema=False)  # --policy.use_ema
+    assert with_ema.policy._sampling_nets()[0] is with_ema.policy.ema["encoder"]
+    assert raw.policy._sampling_nets()[0] is raw.policy.encoder
     with pytest.raises(SystemExit, match="no config.json"):
         eval_main([f"--policy.path={tmp_path}", f"--output_dir={tmp_path / 'bad'}"])
     with pytest.raises(SystemExit, match="observation.state of shape"):

@@ -1,0 +1,31 @@
+"""What every command-line entry point of the project shares: draccus parsing (``--help``,
+``--config_path``) and bad input reported as one ``error: ...`` line instead of a traceback."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from subprocess import CalledProcessError
+from typing import TypeVar
+
+import draccus
+
+T = TypeVar("T")
+USER_ERRORS = (ValueError, FileExistsError, FileNotFoundError)
+
+
+def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] | None = None,
+            interrupted: str | None = None) -> None:
+    """Parse ``argv`` (default: the process's) into ``config_class`` and call ``run`` with it.
+    ``interrupted``: what to tell the user on Ctrl-C (how to resume), if the command can resume."""
+    cfg = draccus.parse(config_class=config_class, args=list(sys.argv[1:] if argv is None else argv))
+    try:
+        run(cfg)
+    except USER_ERRORS as e:
+        raise SystemExit(f"error: {e}") from None
+    except CalledProcessError as e:
+        raise SystemExit(f"error: a stage command failed ({e.returncode}): {' '.join(map(str, e.cmd))}") from None
+    except KeyboardInterrupt:
+        if interrupted is None:
+            raise
+        raise SystemExit(f"interrupted: {interrupted}") from None
