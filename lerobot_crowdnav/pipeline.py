@@ -14,6 +14,8 @@ Every stage runs the command a user would type (lerobot-train as a subprocess, t
 CLIs in-process) and is skipped when its output is complete; an interrupted stage resumes
 (collection, lerobot-train and fine-tuning from their last checkpoint). Evaluation is
 deterministic, so ``--rerun_eval=true`` regenerates identical tables from the saved checkpoints.
+A larger budget on a rerun extends the incomplete stages (lerobot-train resumes to the new
+``--bc_steps``); stages already complete are not redone: delete a stage's directory to redo it.
 
     outputs/<run>/
         datasets/<task>/               ORCA demonstrations (LeRobotDataset)
@@ -181,7 +183,8 @@ class Pipeline:
         def run() -> None:
             cmd = list(argv)
             if last.exists():  # interrupted: lerobot-train resumes from its last checkpoint
-                cmd = ["lerobot-train", f"--config_path={last / 'pretrained_model' / 'train_config.json'}", "--resume=true"]
+                cmd = ["lerobot-train", f"--config_path={last / 'pretrained_model' / 'train_config.json'}", "--resume=true",
+                       f"--steps={steps}"]
             elif out.exists():
                 shutil.rmtree(out)  # started but never checkpointed: lerobot-train refuses an existing dir
             cmd[0] = str(Path(sys.executable).parent / "lerobot-train")
