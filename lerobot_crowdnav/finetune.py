@@ -605,7 +605,8 @@ class Trainer:
             from .plots import plot_finetune_curves
 
             plot_finetune_curves({self.out.name: records}, self.out / "training_curves.png")
-            print(f"\nfine-tuned {self.env_steps} env steps on {self.world} processes ({acc.distributed_type.value}); "
+            procs = "1 process" if self.world == 1 else f"{self.world} processes ({acc.distributed_type.value})"
+            print(f"\nfine-tuned {self.env_steps} env steps on {procs}; "
                   f"best validation success rate {self.best_val_sr:.3f}; checkpoints in {self.out / 'checkpoints'}")
         return result
 
