@@ -265,8 +265,8 @@ class Rollout:
     scaled_rewards: np.ndarray  # (T, B) what the critic learns
     terminated: np.ndarray  # (T, B)
     done: np.ndarray  # (T, B) terminated or truncated
-    final_states: dict[tuple[int, int], torch.Tensor]  # (t, b) -> normalized final obs of a timeout
-    next_state: torch.Tensor  # (B, D) normalized observation after the last step
+    final_states: dict[tuple[int, int], torch.Tensor]  # (t, b) -> normalized final obs of a timeout (cpu)
+    next_state: torch.Tensor  # (B, D) normalized observation after the last step (cpu)
     episodes: list[dict]  # event, return, length of the episodes that ended
 
     def digest(self) -> str:
@@ -428,7 +428,7 @@ class Trainer:
             rewards[t], terminated[t], done[t] = reward, term, term | trunc
             scaled[t] = self.scaler(reward, done[t]) if ppo.reward_scale_running else reward
             for b in np.flatnonzero(trunc):
-                final_states[(t, b)] = self._normalize(info["final_obs"][b:b + 1])[0]
+                final_states[(t, b)] = self._normalize(info["final_obs"][b:b + 1])[0].cpu()
             if "final_info" in info:
                 fi = info["final_info"]
                 for b in np.flatnonzero(info["_final_info"]):
@@ -455,17 +455,14 @@ class Trainer:
             idx = torch.as_tensor(first_perm[i:i + mb], device=self.device)
             logp, value = scorer(states[idx], chains[idx])
             old_logp[idx], values[idx] = logp.detach(), value.detach()
+        # Bootstrap values: the states after the last step and the final states of timeouts.
+        keys = list(ro.final_states)
+        boot = torch.cat([ro.next_state, *(ro.final_states[k][None] for k in keys)]).to(self.device)
         with torch.no_grad():
-            v_next_last = scorer.policy.value(scorer.policy.encoder(ro.next_state.to(self.device))).cpu().numpy()
-            finals = {}
-            if ro.final_states:
-                keys = list(ro.final_states)
-                stacked = torch.stack([ro.final_states[k] for k in keys]).to(self.device)
-                v_final = scorer.policy.value(scorer.policy.encoder(stacked)).cpu().numpy()
-                finals = dict(zip(keys, v_final, strict=True))
+            v_boot = scorer.policy.value(scorer.policy.encoder(boot)).cpu().numpy()
         v = values.cpu().numpy().reshape(T, B)
-        next_values = np.concatenate([v[1:], v_next_last[None]], axis=0)
-        for (t, b), value in finals.items():
+        next_values = np.concatenate([v[1:], v_boot[None, :B]], axis=0)
+        for (t, b), value in zip(keys, v_boot[B:], strict=True):
             next_values[t, b] = value
         adv, ret = gae(ro.scaled_rewards, v, next_values, ro.terminated.astype(float), ro.done.astype(float),
                        ppo.gamma, ppo.gae_lambda)

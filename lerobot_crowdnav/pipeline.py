@@ -112,6 +112,18 @@ class MainConfig:
         return self.output_root / self.run
 
 
+@dataclass(frozen=True)
+class Evaluation:
+    """One policy evaluated on the test seeds: a built-in (``policy`` None) or a checkpoint
+    trained with ``horizon`` and ``seed`` (``finetuned``: the diffusion-PPO ``best``)."""
+
+    name: str  # the directory under eval/<task>/
+    policy: Path | None = None
+    horizon: int | None = None
+    seed: int | None = None
+    finetuned: bool = False
+
+
 class Pipeline:
     def __init__(self, cfg: MainConfig):
         cfg.validate()
@@ -209,38 +221,44 @@ class Pipeline:
         resume = ["--resume=true"] if saved.exists() else []
         self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
 
-    def methods(self, task: str) -> list[tuple[str, str, list[tuple[str, Path | None]]]]:
-        """(label, slug, [(eval name, policy path or None for a built-in)]) per table row."""
-        seeds, hs = self.cfg.seeds, self.cfg.horizons
-        rows = [("ORCA", "orca", [("orca", None)]), ("straight", "straight", [("straight", None)])]
-        h_main = 5 if 5 in hs else hs[0]
-        rows.append((f"PDPO pretrained only (H = {h_main}, BC)", f"pdpo_bc_h{h_main}",
-                     [(f"pdpo_bc_h{h_main}_s{s}", self.train_dir(task, h_main, s) / "checkpoints" / "last" / "pretrained_model")
-                      for s in seeds]))
-        for h in sorted(hs):
+    @property
+    def main_horizon(self) -> int:
+        """The horizon of the "pretrained only" row and of the figures (PDPO's 5 when run)."""
+        return 5 if 5 in self.cfg.horizons else self.cfg.horizons[0]
+
+    def finetuned(self, task: str, h: int, seed: int) -> Evaluation:
+        return Evaluation(f"pdpo_ft_h{h}_s{seed}", self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model",
+                          h, seed, finetuned=True)
+
+    def methods(self, task: str) -> list[tuple[str, list[Evaluation]]]:
+        """The table rows: (label, the evaluations averaged in it, one per training seed)."""
+        h0 = self.main_horizon
+        rows = [("ORCA", [Evaluation("orca")]), ("straight", [Evaluation("straight")]),
+                (f"PDPO pretrained only (H = {h0}, BC)",
+                 [Evaluation(f"pdpo_bc_h{h0}_s{s}", self.train_dir(task, h0, s) / "checkpoints" / "last" / "pretrained_model", h0, s)
+                  for s in self.cfg.seeds])]
+        for h in sorted(self.cfg.horizons):
             label = "PDPO w/o action chunk (H = 1, fine-tuned)" if h == 1 else f"PDPO (H = {h}, fine-tuned)"
-            rows.append((label, f"pdpo_ft_h{h}",
-                         [(f"pdpo_ft_h{h}_s{s}", self.finetune_dir(task, h, s) / "checkpoints" / "best" / "pretrained_model")
-                          for s in seeds]))
+            rows.append((label, [self.finetuned(task, h, s) for s in self.cfg.seeds]))
         return rows
 
     def eval_dir(self, task: str, name: str) -> Path:
         return self.root / "eval" / SHORT[task] / name
 
-    def evaluate(self, task: str, name: str, path: Path | None) -> None:
+    def evaluate(self, task: str, ev: Evaluation) -> None:
         from .eval import main as eval_main
 
-        out = self.eval_dir(task, name)
+        out = self.eval_dir(task, ev.name)
         metrics = out / "metrics.json"
-        policy = [f"--policy.type={name}"] if path is None else [f"--policy.path={path}"]
-        if self.device and path is not None:
+        policy = [f"--policy.type={ev.name}"] if ev.policy is None else [f"--policy.path={ev.policy}"]
+        if self.device and ev.policy is not None:
             policy.append(f"--policy.device={self.device}")
         argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), f"--eval.n_episodes={self.cfg.test_episodes}",
                 "--eval.split=test", f"--eval.batch_size={min(256, self.cfg.test_episodes)}", "--eval.n_videos=1",
                 f"--output_dir={out}", "--overwrite=true"]
         done = (not self.cfg.rerun_eval and metrics.exists()
                 and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
-        self._stage(f"eval {SHORT[task]} {name}", argv, done, lambda: eval_main(argv[1:]))
+        self._stage(f"eval {SHORT[task]} {ev.name}", argv, done, lambda: eval_main(argv[1:]))
 
     def push(self, task: str) -> None:
         from .hub import push_dataset_to_dir, push_policy_to_dir
@@ -253,10 +271,10 @@ class Pipeline:
         self._stage(f"push dataset {SHORT[task]}", argv, target.exists(),
                     lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
         for h in self.cfg.horizons:
-            seed = self.cfg.seeds[0]
+            ev = self.finetuned(task, h, self.cfg.seeds[0])
             policy_repo = f"{self.cfg.hub_org}/pdpo_{SHORT[task]}_h{h}"
-            pretrained = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model"
-            metrics = self.eval_dir(task, f"pdpo_ft_h{h}_s{seed}") / "metrics.json"
+            pretrained = ev.policy
+            metrics = self.eval_dir(task, ev.name) / "metrics.json"
             argv = ["python", "-m", "lerobot_crowdnav.hub", "--kind=policy", f"--root={pretrained}",
                     f"--repo_id={policy_repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
             self._stage(f"push policy {SHORT[task]} H={h}", argv, (hub / "models" / policy_repo).exists() and not self.cfg.rerun_eval,
@@ -268,8 +286,8 @@ class Pipeline:
 
         out = self.root / "figures" / SHORT[task]
         seed = self.cfg.seeds[0]
-        h_main = 5 if 5 in self.cfg.horizons else self.cfg.horizons[0]
-        policy = self.finetune_dir(task, h_main, seed) / "checkpoints" / "best" / "pretrained_model"
+        h_main = self.main_horizon
+        policy = self.finetuned(task, h_main, seed).policy
         episode_seed = split_seeds("test", self.cfg.figure_episode + 1)[-1]
         paths = {"storyboard": out / "storyboard.png", "multimodality": out / "multimodality.png",
                  "curves": out / "finetune_curves.png"}
@@ -308,9 +326,9 @@ class Pipeline:
                 for h in self.cfg.horizons:
                     self.pretrain(task, h, seed)
                     self.finetune(task, h, seed)
-            for _, _, evals in self.methods(task):
-                for name, path in evals:
-                    self.evaluate(task, name, path)
+            for _, evals in self.methods(task):
+                for ev in evals:
+                    self.evaluate(task, ev)
             self.push(task)
             self.figures(task)
         from .report import write_report

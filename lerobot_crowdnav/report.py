@@ -150,22 +150,22 @@ def write_report(pipeline, wall_time_s: float) -> Path:
         short = SHORT[task]
         rows = []
         notes = []
-        for label, slug, evals in pipeline.methods(task):
-            metrics = [load_metrics(pipeline.eval_dir(task, name) / "metrics.json") for name, _ in evals]
-            rows.append(Row(label, metrics))
-            for name, path in evals:
-                notes.append(f"- {label}, `{name}`: `{cmd(f'eval {short} {name}')}`")
-                if path is not None and "fine-tuned" in label:
-                    h, seed = name.split("_")[2][1:], name.split("_")[3][1:]
-                    notes.append(f"  - pretrained by `{cmd(f'pretrain {short} H={h} seed={seed}')}`")
-                    best = json.loads((path.parent / "best.json").read_text())
-                    notes.append(f"  - fine-tuned by `{cmd(f'finetune {short} H={h} seed={seed}')}`; checkpoint `best` "
-                                 f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
-                                 + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
-                    counts[f"{TITLE[task]}: {label}, seed {seed}"] = parameter_counts(path / "model.safetensors")
-                elif path is not None:
-                    h, seed = name.split("_")[2][1:], name.split("_")[3][1:]
-                    notes.append(f"  - pretrained by `{cmd(f'pretrain {short} H={h} seed={seed}')}` (checkpoint `last`)")
+        for label, evals in pipeline.methods(task):
+            rows.append(Row(label, [load_metrics(pipeline.eval_dir(task, ev.name) / "metrics.json") for ev in evals]))
+            for ev in evals:
+                notes.append(f"- {label}, `{ev.name}`: `{cmd(f'eval {short} {ev.name}')}`")
+                if ev.policy is None:
+                    continue
+                trained = f"H={ev.horizon} seed={ev.seed}"
+                if not ev.finetuned:
+                    notes.append(f"  - pretrained by `{cmd(f'pretrain {short} {trained}')}` (checkpoint `last`)")
+                    continue
+                best = json.loads((ev.policy.parent / "best.json").read_text())
+                notes.append(f"  - pretrained by `{cmd(f'pretrain {short} {trained}')}`")
+                notes.append(f"  - fine-tuned by `{cmd(f'finetune {short} {trained}')}`; checkpoint `best` "
+                             f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
+                             + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
+                counts[f"{TITLE[task]}: {label}, seed {ev.seed}"] = parameter_counts(ev.policy / "model.safetensors")
         (tables / f"results_{short}.csv").write_text(csv_table(rows))
         lines += [f"## {TITLE[task]}", "",
                   f"`{task}`, {cfg.test_episodes} test episodes, the same seeds for every method"
@@ -197,8 +197,8 @@ def write_report(pipeline, wall_time_s: float) -> Path:
                   "(lines: training episodes, smoothed; markers: deterministic validation).", "",
                   f"![fine-tuning curves]({_rel(fig / 'finetune_curves.png', root)})", "",
                   "One test episode per method (the first test seed):", ""]
-        for label, _, evals in pipeline.methods(task):
-            gifs = sorted((pipeline.eval_dir(task, evals[0][0]) / "videos").glob("*.gif"))
+        for label, evals in pipeline.methods(task):
+            gifs = sorted((pipeline.eval_dir(task, evals[0].name) / "videos").glob("*.gif"))
             if gifs:
                 lines.append(f"- {label}: [{gifs[0].name}]({_rel(gifs[0], root)})")
         lines.append("")
