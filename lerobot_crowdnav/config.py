@@ -16,6 +16,13 @@ import math
 from dataclasses import dataclass
 
 TASKS = ("CrowdNav-v0", "BoundedCrowdNav-v0")
+ORCA_ROBOTS = ("look_ahead", "current_state")
+"""The two ORCA robots of CrowdNav++ (docs/simulator.md, "The ORCA robot"). ``look_ahead``
+(``CrowdSimPred``, the env the paper builds on): every human visible at the last observation is
+seen at its true position now and 1..L steps ahead (the humans' ORCA roll-out), L + 1 agents per
+human. ``current_state`` (``CrowdSimVarNum``, CrowdNav++'s published ORCA baseline): one agent per
+human from the robot's memory, last observed state, extrapolated while out of sight, a dummy far
+away until first seen."""
 """``CrowdNav-v0``: the original benchmark, no boundary. ``BoundedCrowdNav-v0``: walls on the
 boundary of the ``[-arena_size, arena_size]^2`` workspace; touching one is a collision."""
 
@@ -46,6 +53,12 @@ _COMMON = dict(
     orca_safety_space=0.15,  # added to every ORCA radius, with the 0.01 pad below
     orca_radius_pad=0.01,
     # (CrowdNav++ gives the other agents max speed 1; it never enters agent 0's solve, so no field.)
+    # CrowdNav++ Agent.__init__: with randomize_attributes, every new human redraws the one shared
+    # config.orca.neighbor_dist from U(5, 10) (see randomize_neighbor_dist).
+    neighbor_dist_range=(5.0, 10.0),
+    # CrowdNav++'s ORCA policy knows no obstacles: the robot ignores the walls (they only end its
+    # episodes); the paper's Bounded ORCA row is this robot.
+    orca_robot_wall_aware=False,
     # Reward (CrowdNav++ config.reward and CrowdSimPred.calc_reward).
     success_reward=10.0,
     collision_penalty=-20.0,
@@ -62,6 +75,8 @@ PRESETS: dict[str, dict] = {
         sensing_range=6.0,
         randomize_attributes=True,  # paper: r ~ U(0.3, 0.5), v_pref ~ U(0.5, 1.5) per human
         goal_change_interval=1.0,  # paper text: every 1 s
+        orca_robot="look_ahead",  # the paper builds on CrowdSimPred (constant-velocity predictor)
+        randomize_neighbor_dist=False,  # not in the paper
     ),
     "crowdnavpp": dict(
         _COMMON,
@@ -69,6 +84,8 @@ PRESETS: dict[str, dict] = {
         sensing_range=5.0,
         randomize_attributes=True,  # config.env.randomize_attributes (its ORCA baseline: False)
         goal_change_interval=5.0,  # the code: `global_time % 5 == 0`
+        orca_robot="current_state",  # CrowdSimVarNum: the env of CrowdNav++'s ORCA baseline
+        randomize_neighbor_dist=None,  # the code: on exactly when randomize_attributes is
     ),
 }
 
@@ -131,6 +148,17 @@ class CrowdSimConfig:
     discomfort_dist: float | None = None
     # ORCA neighbour distance, m (10).
     orca_neighbor_dist: float | None = None
+    # ORCA robot: look_ahead (sees visible humans now and 1..L steps ahead, CrowdSimPred; paper
+    # default) or current_state (sees its memory of each human, CrowdSimVarNum; crowdnavpp default).
+    orca_robot: str | None = None
+    # ORCA robot avoids the Bounded walls as RVO2 static obstacles (false: CrowdNav++'s robot,
+    # which ignores them; true: a stronger baseline / demonstrator).
+    orca_robot_wall_aware: bool | None = None
+    # CrowdNav++ quirk: each new human (reset, respawn) redraws the env's shared ORCA neighbour
+    # distance from neighbor_dist_range (crowdnavpp: = randomize_attributes; paper: false).
+    randomize_neighbor_dist: bool | None = None
+    # Range of the redrawn neighbour distance, m ([5, 10]).
+    neighbor_dist_range: tuple[float, float] | None = None
     # ORCA time horizon for agents, s (5).
     orca_time_horizon: float | None = None
     # ORCA time horizon for obstacles (walls, ORCA robot only), s (5).
@@ -167,7 +195,9 @@ class CrowdSimConfig:
         for f in dataclasses.fields(CrowdSimConfig):
             v = getattr(self, f.name)
             values[f.name] = preset[f.name] if v is None else v
-        for key in ("human_radius_range", "human_v_pref_range"):
+        if values["randomize_neighbor_dist"] is None:  # crowdnavpp: the quirk comes with randomization
+            values["randomize_neighbor_dist"] = values["randomize_attributes"]
+        for key in ("human_radius_range", "human_v_pref_range", "neighbor_dist_range"):
             values[key] = tuple(float(x) for x in values[key])
         cfg = CrowdSimConfig(**values)
         cfg._validate()
@@ -186,7 +216,9 @@ class CrowdSimConfig:
             raise ValueError(f"prediction_steps must be >= 1, got {self.prediction_steps}")
         if not 0.0 <= self.goal_change_prob <= 1.0:
             raise ValueError(f"goal_change_prob must be in [0, 1], got {self.goal_change_prob}")
-        for name in ("human_radius_range", "human_v_pref_range"):
+        if self.orca_robot not in ORCA_ROBOTS:
+            raise ValueError(f"unknown orca_robot {self.orca_robot!r}; choose one of {', '.join(ORCA_ROBOTS)}")
+        for name in ("human_radius_range", "human_v_pref_range", "neighbor_dist_range"):
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} must satisfy 0 < low <= high, got {(lo, hi)}")

@@ -8,11 +8,20 @@ potential           (B,)            CrowdNav++ potential ``-|pos - goal|`` (prog
 step_count          (B,)            steps taken in the current episode
 human_pos/vel/goal  (B, N, 2)       true human states
 human_radius/vpref  (B, N)
-seen/seen_pos/...   (B, N[, 2])     the robot's memory of each human at its last observation
+seen_pos/vel/radius (B, N[, 2])     the robot's memory of each human (CrowdNav++
+                                    ``last_human_states``): last observed state, extrapolated
+                                    ``p += v dt`` while out of sight, a dummy until first seen
 pred                (B, N, L+1, 2)  positions shown in the last observation (k = 0..L), absolute
 visible             (B, N)          visibility in the last observation (by human index)
+neighbor_dist       (B,)            the env's ORCA neighbour distance (redrawn by the quirk)
+future_pos/vel      (B, L+1, N, 2)  the humans' ORCA roll-out from the current state, k = 0..L
+rollout_depth       (B,)            steps of that roll-out computed since the last move (0: none)
 rng                 (B, 4) uint64   xoshiro256** state of the episode's own generator
 =================  ==============  ==========================================================
+
+The roll-out (robot invisible, no goal changes, no respawns) is computed at most once per step,
+as deep as needed: step 1 is the humans' actual move, steps 1..L the intrusion test's true
+futures and, with step 0, the look-ahead ORCA robot's 6 x N agents.
 
 Every random draw of an episode (crowd generation, goal changes, respawns) comes from the
 generator seeded with the episode seed, and no computation mixes environments, so a seed gives a
@@ -31,7 +40,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from .config import CrowdSimConfig
+from .config import ORCA_ROBOTS, CrowdSimConfig
 from .orca import bounding_box, compute_new_velocity, insert_sorted, make_obstacles
 
 # Episode events (``info["event"]``).
@@ -40,6 +49,9 @@ EVENT_NAMES = ("running", "success", "human_collision", "wall_collision", "timeo
 
 ROBOT_DIM = 7  # px, py, radius, gx, gy, v_pref, theta
 ROBOT_THETA = math.pi / 2  # holonomic robot: heading stays at its initial pi/2 (CrowdNav++)
+# CrowdNav++'s stand-in for a human the robot has never seen: (15, 15), v = 0, r = 0.3.
+DUMMY_POS, DUMMY_RADIUS = 15.0, 0.3
+LOOK_AHEAD, CURRENT_STATE = 0, 1  # Params.orca_robot, in config.ORCA_ROBOTS order
 
 _MAX_REJECTIONS = 100_000  # rejection-sampling guard for crowded custom configs
 
@@ -74,6 +86,10 @@ class Params(NamedTuple):
     time_horizon: float
     time_horizon_obst: float
     orca_pad: float
+    orca_robot: int  # LOOK_AHEAD or CURRENT_STATE
+    nd_random: bool  # the neighbour-distance quirk
+    nd_lo: float
+    nd_hi: float
     success_reward: float
     collision_penalty: float
     discomfort_factor: float
@@ -99,6 +115,8 @@ def make_params(cfg: CrowdSimConfig) -> Params:
         neighbor_dist=cfg.orca_neighbor_dist, time_horizon=cfg.orca_time_horizon,
         time_horizon_obst=cfg.orca_time_horizon_obst,
         orca_pad=cfg.orca_radius_pad + cfg.orca_safety_space,
+        orca_robot=ORCA_ROBOTS.index(cfg.orca_robot), nd_random=cfg.randomize_neighbor_dist,
+        nd_lo=cfg.neighbor_dist_range[0], nd_hi=cfg.neighbor_dist_range[1],
         success_reward=cfg.success_reward, collision_penalty=cfg.collision_penalty,
         discomfort_factor=cfg.discomfort_penalty_factor, potential_factor=cfg.potential_factor,
         pred_radius=cfg.prediction_radius, sentinel=cfg.sentinel,
@@ -174,10 +192,13 @@ def _clear_of_agents(x, y, r_self, skip, rp, rg, p, hp, hg, hr, n_check):
 
 
 @nb.njit(cache=True)
-def _spawn_human(i, n_check, rng, rp, rg, hp, hv, hg, hr, hvp, p):
+def _spawn_human(i, n_check, rng, rp, rg, hp, hv, hg, hr, hvp, nd, p):
     """Generate human ``i`` (attributes, start on the circle, antipodal goal, zero velocity),
     rejection-sampled against the robot and humans ``0..n_check-1`` (itself included: a respawn
-    is checked against the human it replaces, as in CrowdNav++)."""
+    is checked against the human it replaces, as in CrowdNav++). With the quirk, the env's ORCA
+    neighbour distance ``nd[0]`` is redrawn first (CrowdNav++ ``Agent.__init__``)."""
+    if p.nd_random:
+        nd[0] = p.nd_lo + (p.nd_hi - p.nd_lo) * uniform(rng)
     if p.randomize:
         hvp[i] = p.vpref_lo + (p.vpref_hi - p.vpref_lo) * uniform(rng)
         hr[i] = p.radius_lo + (p.radius_hi - p.radius_lo) * uniform(rng)
@@ -217,31 +238,28 @@ def _change_goals(rng, rp, rg, hp, hg, hr, hvp, p):
 
 
 class Scratch(NamedTuple):
-    """Per-environment work arrays for the ORCA solver and the intrusion look-ahead."""
+    """Per-environment work arrays for the ORCA solver (sized for the robot's largest scene,
+    A = (L + 1) N + 1 agents, and K obstacle vertices)."""
 
-    lines: np.ndarray  # (K + N + 1, 4)
-    proj: np.ndarray  # (K + N + 1, 4)
-    nb_idx: np.ndarray  # (N + 1,)
+    lines: np.ndarray  # (K + A, 4)
+    proj: np.ndarray  # (K + A, 4)
+    nb_idx: np.ndarray  # (A,)
     nb_dist: np.ndarray
     ob_idx: np.ndarray  # (K,)
     ob_dist: np.ndarray
-    radii: np.ndarray  # (N + 1,) ORCA radii
-    new_vel: np.ndarray  # (N, 2)
-    fut_pos: np.ndarray  # (N, 2)
-    fut_vel: np.ndarray  # (N, 2)
-    fut_new: np.ndarray  # (N, 2)
-    agents_pos: np.ndarray  # (N + 1, 2) robot ORCA scene
+    radii: np.ndarray  # (A,) ORCA radii
+    agents_pos: np.ndarray  # (A, 2) robot ORCA scene: the robot, then the agents it sees
     agents_vel: np.ndarray
+    candidates: np.ndarray  # (A,) 1..A-1: the robot's candidate neighbours
     order: np.ndarray  # (N,) observation sort
 
 
 @nb.njit(cache=True)
-def _make_scratch(n, k):
-    m = n + 1
+def _make_scratch(n, n_pred, k):
+    m = (n_pred + 1) * n + 1
     return Scratch(np.empty((k + m, 4)), np.empty((k + m, 4)), np.empty(m, np.int64),
                    np.empty(m), np.empty(max(k, 1), np.int64), np.empty(max(k, 1)), np.empty(m),
-                   np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2)),
-                   np.empty((m, 2)), np.empty((m, 2)), np.empty(n, np.int64))
+                   np.empty((m, 2)), np.empty((m, 2)), np.arange(1, m + 1), np.empty(n, np.int64))
 
 
 @nb.njit(cache=True, inline="always")
@@ -254,7 +272,7 @@ def _pref_velocity(dx, dy):
 
 
 @nb.njit(cache=True)
-def _humans_orca(hp, hv, hg, hr, hvp, all_idx, p, obst, s, out):
+def _humans_orca(hp, hv, hg, hr, hvp, all_idx, p, neighbor_dist, no_obst, s, out):
     """New velocities of all humans: each solves ORCA as agent 0 among all other humans (the
     robot is invisible to them; no walls)."""
     n = p.n_humans
@@ -263,20 +281,42 @@ def _humans_orca(hp, hv, hg, hr, hvp, all_idx, p, obst, s, out):
     for i in range(n):
         px_, py_ = _pref_velocity(hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1])
         out[i, 0], out[i, 1] = compute_new_velocity(
-            i, hp, hv, s.radii, all_idx, n, hvp[i], px_, py_, p.neighbor_dist, n,
-            p.time_horizon, p.time_horizon_obst, p.dt, obst[0][:0], obst[1][:0], obst[2][:0],
-            obst[3][:0], obst[4][:0], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
+            i, hp, hv, s.radii, all_idx, n, hvp[i], px_, py_, neighbor_dist, n,
+            p.time_horizon, p.time_horizon_obst, p.dt, no_obst[0], no_obst[1], no_obst[2],
+            no_obst[3], no_obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
 
 
 @nb.njit(cache=True)
-def _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pred, visible, obs,
-             s):
+def _roll_out(b, depth, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos, fut_vel,
+              rollout_depth, s):
+    """Extend env ``b``'s roll-out of the humans to ``depth`` steps: k = 0 is the current state,
+    each further step is every human's ORCA velocity from the previous one and the move by it
+    (robot invisible, goals fixed, no respawns). Step 1 is the humans' actual next move."""
+    done = rollout_depth[b]
+    if done >= depth:
+        return
+    if done == 0:
+        fut_pos[b, 0] = hp[b]
+        fut_vel[b, 0] = hv[b]
+    for k in range(done + 1, depth + 1):
+        _humans_orca(fut_pos[b, k - 1], fut_vel[b, k - 1], hg[b], hr[b], hvp[b], all_idx, p, nd[b],
+                     no_obst, s, fut_vel[b, k])
+        for i in range(p.n_humans):
+            fut_pos[b, k, i, 0] = fut_pos[b, k - 1, i, 0] + fut_vel[b, k, i, 0] * p.dt
+            fut_pos[b, k, i, 1] = fut_pos[b, k - 1, i, 1] + fut_vel[b, k, i, 1] * p.dt
+    rollout_depth[b] = depth
+
+
+@nb.njit(cache=True)
+def _observe(b, p, rp, rv, rg, hp, hv, hr, seen_pos, seen_vel, seen_r, pred, visible, obs, s):
     """Write observation ``obs[b]`` from the current state and update the robot's memory.
 
     Layout (269 floats for N = 20, L = 5): robot ``px, py, radius, gx, gy, v_pref, theta``;
     robot ``vx, vy``; N rows of ``(x_k, y_k) for k = 0..L`` relative to the robot (current and
     constant-velocity predicted positions, velocity as last observed, one step stale), visible
-    rows first sorted by distance, the others filled with the sentinel; N mask values.
+    rows first sorted by distance, the others filled with the sentinel; N mask values. Memory
+    (CrowdNav++ ``update_last_human_states``): a visible human's state is stored, an invisible
+    one's is extrapolated one step at its remembered velocity ("Plan A").
     """
     n, L = p.n_humans, p.n_pred
     o = obs[b]
@@ -300,10 +340,12 @@ def _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pre
             n_vis += 1
     for i in range(n):
         if visible[b, i]:
-            seen[b, i] = True
             seen_pos[b, i, 0], seen_pos[b, i, 1] = hp[b, i, 0], hp[b, i, 1]
             seen_vel[b, i, 0], seen_vel[b, i, 1] = hv[b, i, 0], hv[b, i, 1]
             seen_r[b, i] = hr[b, i]
+        else:
+            seen_pos[b, i, 0] += seen_vel[b, i, 0] * p.dt
+            seen_pos[b, i, 1] += seen_vel[b, i, 1] * p.dt
     row_len = 2 * (L + 1)
     base = ROBOT_DIM + 2
     mask_base = base + n * row_len
@@ -322,8 +364,8 @@ def _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pre
 
 
 @nb.njit(cache=True)
-def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen,
-               seen_pos, seen_vel, seen_r, pred, visible, obs, s):
+def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+               seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth, obs, s):
     r = rng[b]
     seed_rng(r, seed)
     a = p.arena - p.spawn_margin
@@ -336,28 +378,32 @@ def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, h
             break
     rp[b, 0], rp[b, 1], rg[b, 0], rg[b, 1] = px, py, gx, gy
     rv[b, 0], rv[b, 1] = 0.0, 0.0
+    nd[b] = p.neighbor_dist
     for i in range(p.n_humans):
-        _spawn_human(i, i, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], p)
+        _spawn_human(i, i, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], nd[b:b + 1], p)
     step_count[b] = 0
     potential[b] = -math.sqrt((px - gx) ** 2 + (py - gy) ** 2)
-    seen[b, :] = False
+    seen_pos[b, :, :] = DUMMY_POS
     seen_vel[b, :, :] = 0.0
-    seen_pos[b, :, :] = 0.0
-    seen_r[b, :] = 0.0
-    _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
+    seen_r[b, :] = DUMMY_RADIUS
+    rollout_depth[b] = 0
+    _observe(b, p, rp, rv, rg, hp, hv, hr, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
 
 
 @nb.njit(cache=True)
-def _step_one(b, action, p, obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg,
-              hr, hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, out_reward,
-              out_event, out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob, s):
+def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg,
+              hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel,
+              rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion, out_intr_dist,
+              out_distance, out_oob, s):
     n, L, dt = p.n_humans, p.n_pred, p.dt
-    # (1) Robot action, clipped by norm to v_pref; humans' ORCA from current states.
+    # (1) Robot action, clipped by norm to v_pref; humans' ORCA from current states (step 1 of
+    # the roll-out; all L steps when the intrusion test needs the true futures).
     ax, ay = action[0], action[1]
     speed = math.sqrt(ax * ax + ay * ay)
     if speed > p.robot_vpref:
         ax, ay = ax * (p.robot_vpref / speed), ay * (p.robot_vpref / speed)
-    _humans_orca(hp[b], hv[b], hg[b], hr[b], hvp[b], all_idx, p, obst, s, s.new_vel)
+    _roll_out(b, L if p.intrusion else 1, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos,
+              fut_vel, rollout_depth, s)
 
     # (2) Reward and termination on the pre-move positions.
     rx, ry = rp[b, 0], rp[b, 1]
@@ -401,41 +447,30 @@ def _step_one(b, action, p, obst, all_idx, rng, step_count, potential, rp, rv, r
     out_oob[b] = abs(rx) > p.arena or abs(ry) > p.arena
 
     # Intrusion: robot within r + 0.3 of a currently visible human's TRUE position k = 1..L steps
-    # ahead (ORCA look-ahead of the humans from their current states, no goal changes).
+    # ahead (the roll-out).
     out_intrusion[b] = False
     out_intr_dist[b] = math.inf
     if p.intrusion:
         for i in range(n):
-            s.fut_pos[i, 0] = hp[b, i, 0] + s.new_vel[i, 0] * dt
-            s.fut_pos[i, 1] = hp[b, i, 1] + s.new_vel[i, 1] * dt
-            s.fut_vel[i, 0], s.fut_vel[i, 1] = s.new_vel[i, 0], s.new_vel[i, 1]
-        for k in range(1, L + 1):
-            if k > 1:
-                _humans_orca(s.fut_pos, s.fut_vel, hg[b], hr[b], hvp[b], all_idx, p, obst, s,
-                             s.fut_new)
-                for i in range(n):
-                    s.fut_vel[i, 0], s.fut_vel[i, 1] = s.fut_new[i, 0], s.fut_new[i, 1]
-                    s.fut_pos[i, 0] += s.fut_new[i, 0] * dt
-                    s.fut_pos[i, 1] += s.fut_new[i, 1] * dt
-            for i in range(n):
-                d_now = math.sqrt((hp[b, i, 0] - rx) ** 2 + (hp[b, i, 1] - ry) ** 2)
-                if d_now - p.robot_radius - hr[b, i] <= p.sensing:
-                    c = math.sqrt((s.fut_pos[i, 0] - rx) ** 2 + (s.fut_pos[i, 1] - ry) ** 2)
+            d_now = math.sqrt((hp[b, i, 0] - rx) ** 2 + (hp[b, i, 1] - ry) ** 2)
+            if d_now - p.robot_radius - hr[b, i] <= p.sensing:
+                for k in range(1, L + 1):
+                    c = math.sqrt((fut_pos[b, k, i, 0] - rx) ** 2 + (fut_pos[b, k, i, 1] - ry) ** 2)
                     if c < out_intr_dist[b]:
                         out_intr_dist[b] = c
         out_intrusion[b] = out_intr_dist[b] < p.robot_radius + p.pred_radius
 
-    # (3) Move everyone; (4) observe.
+    # (3) Move everyone (humans by roll-out step 1); (4) observe.
     rp[b, 0] = rx + ax * dt
     rp[b, 1] = ry + ay * dt
     rv[b, 0], rv[b, 1] = ax, ay
     out_distance[b] = 0.0 if event != RUNNING else math.sqrt(ax * ax + ay * ay) * dt
     for i in range(n):
-        hv[b, i, 0], hv[b, i, 1] = s.new_vel[i, 0], s.new_vel[i, 1]
-        hp[b, i, 0] += s.new_vel[i, 0] * dt
-        hp[b, i, 1] += s.new_vel[i, 1] * dt
+        hv[b, i, 0], hv[b, i, 1] = fut_vel[b, 1, i, 0], fut_vel[b, 1, i, 1]
+        hp[b, i, 0], hp[b, i, 1] = fut_pos[b, 1, i, 0], fut_pos[b, 1, i, 1]
+    rollout_depth[b] = 0
     step_count[b] += 1
-    _observe(b, p, rp, rv, rg, hp, hv, hr, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
+    _observe(b, p, rp, rv, rg, hp, hv, hr, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
 
     # (5) Random goal changes when due, then respawn of humans that reached their goal.
     r = rng[b]
@@ -443,30 +478,50 @@ def _step_one(b, action, p, obst, all_idx, rng, step_count, potential, rp, rv, r
         _change_goals(r, rp[b], rg[b], hp[b], hg[b], hr[b], hvp[b], p)
     for i in range(n):
         if (hg[b, i, 0] - hp[b, i, 0]) ** 2 + (hg[b, i, 1] - hp[b, i, 1]) ** 2 < hr[b, i] ** 2:
-            _spawn_human(i, n, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], p)
+            _spawn_human(i, n, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], nd[b:b + 1], p)
 
 
 @nb.njit(cache=True)
-def _orca_robot_one(b, p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, s, out):
-    """The ORCA robot: agent 0 among the humans it has seen (their last observed states), with
-    half responsibility, and the walls as static obstacles in the bounded variant."""
-    n = p.n_humans
+def _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+                    seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth, s, out):
+    """The ORCA robot's velocity: agent 0, max speed v_pref, preferred velocity toward its goal,
+    every agent it sees a neighbour candidate (CrowdNav++ ``ORCA.predict``).
+
+    ``LOOK_AHEAD`` (CrowdSimPred): agent ``1 + k N + i`` is human ``i`` at roll-out step
+    ``k = 0..L`` if it was visible at the last observation, else a dummy. ``CURRENT_STATE``
+    (CrowdSimVarNum): agent ``1 + i`` is the memory of human ``i``. Radii are the remembered ones
+    plus the ORCA pad; walls only if ``robot_obst`` holds them (wall-aware robot)."""
+    n, L = p.n_humans, p.n_pred
+    if p.orca_robot == LOOK_AHEAD:  # first: the roll-out uses the same scratch
+        _roll_out(b, L, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos, fut_vel,
+                  rollout_depth, s)
     s.agents_pos[0, 0], s.agents_pos[0, 1] = rp[b, 0], rp[b, 1]
     s.agents_vel[0, 0], s.agents_vel[0, 1] = rv[b, 0], rv[b, 1]
     s.radii[0] = p.robot_radius + p.orca_pad
-    n_cand = 0
-    for i in range(n):
-        s.agents_pos[i + 1, 0], s.agents_pos[i + 1, 1] = seen_pos[b, i, 0], seen_pos[b, i, 1]
-        s.agents_vel[i + 1, 0], s.agents_vel[i + 1, 1] = seen_vel[b, i, 0], seen_vel[b, i, 1]
-        s.radii[i + 1] = seen_r[b, i] + p.orca_pad
-        if seen[b, i]:
-            s.order[n_cand] = i + 1
-            n_cand += 1
+    if p.orca_robot == LOOK_AHEAD:
+        n_agents = (L + 1) * n
+        for k in range(L + 1):
+            for i in range(n):
+                a = 1 + k * n + i
+                if visible[b, i]:
+                    s.agents_pos[a, 0], s.agents_pos[a, 1] = fut_pos[b, k, i, 0], fut_pos[b, k, i, 1]
+                    s.agents_vel[a, 0], s.agents_vel[a, 1] = fut_vel[b, k, i, 0], fut_vel[b, k, i, 1]
+                else:
+                    s.agents_pos[a, 0], s.agents_pos[a, 1] = DUMMY_POS, DUMMY_POS
+                    s.agents_vel[a, 0], s.agents_vel[a, 1] = 0.0, 0.0
+                s.radii[a] = seen_r[b, i] + p.orca_pad
+    else:
+        n_agents = n
+        for i in range(n):
+            s.agents_pos[i + 1, 0], s.agents_pos[i + 1, 1] = seen_pos[b, i, 0], seen_pos[b, i, 1]
+            s.agents_vel[i + 1, 0], s.agents_vel[i + 1, 1] = seen_vel[b, i, 0], seen_vel[b, i, 1]
+            s.radii[i + 1] = seen_r[b, i] + p.orca_pad
     px_, py_ = _pref_velocity(rg[b, 0] - rp[b, 0], rg[b, 1] - rp[b, 1])
     out[b, 0], out[b, 1] = compute_new_velocity(
-        0, s.agents_pos, s.agents_vel, s.radii, s.order, n_cand, p.robot_vpref, px_, py_,
-        p.neighbor_dist, n, p.time_horizon, p.time_horizon_obst, p.dt, obst[0], obst[1], obst[2],
-        obst[3], obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
+        0, s.agents_pos, s.agents_vel, s.radii, s.candidates, n_agents, p.robot_vpref, px_, py_,
+        nd[b], n_agents, p.time_horizon, p.time_horizon_obst, p.dt, robot_obst[0], robot_obst[1],
+        robot_obst[2], robot_obst[3], robot_obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist,
+        s.ob_idx, s.ob_dist)
 
 
 # --------------------------------------------------------------------------------------------
@@ -475,32 +530,38 @@ def _orca_robot_one(b, p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, s,
 
 
 @nb.njit(cache=True)
-def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen,
-               seen_pos, seen_vel, seen_r, pred, visible, obs):
+def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+               seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth, obs):
     # Serial: a reset costs a few microseconds, less than waking the thread pool for the handful
     # of slots an autoreset touches.
-    s = _make_scratch(p.n_humans, 0)
+    s = _make_scratch(p.n_humans, p.n_pred, 0)
     for q in range(idx.shape[0]):
         _reset_one(idx[q], seeds[q], p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
-                   hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
+                   hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel,
+                   rollout_depth, obs, s)
 
 
 @nb.njit(cache=True, parallel=True)
-def step_many(actions, p, obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
-              hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, out_reward, out_event,
-              out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob):
+def step_many(actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
+              hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth,
+              obs, out_reward, out_event, out_dmin, out_intrusion, out_intr_dist, out_distance,
+              out_oob):
     for b in nb.prange(actions.shape[0]):
-        s = _make_scratch(p.n_humans, obst[0].shape[0])
-        _step_one(b, actions[b], p, obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv,
-                  hg, hr, hvp, seen, seen_pos, seen_vel, seen_r, pred, visible, obs, out_reward,
-                  out_event, out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob, s)
+        s = _make_scratch(p.n_humans, p.n_pred, 0)
+        _step_one(b, actions[b], p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp,
+                  hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel,
+                  rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
+                  out_intr_dist, out_distance, out_oob, s)
 
 
 @nb.njit(cache=True, parallel=True)
-def orca_robot_many(p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, out):
+def orca_robot_many(p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+                    seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth, out):
     for b in nb.prange(rp.shape[0]):
-        s = _make_scratch(p.n_humans, obst[0].shape[0])
-        _orca_robot_one(b, p, obst, rp, rv, rg, seen, seen_pos, seen_vel, seen_r, s, out)
+        s = _make_scratch(p.n_humans, p.n_pred, robot_obst[0].shape[0])
+        _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp,
+                        seen_pos, seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth,
+                        s, out)
 
 
 PARALLEL_MIN_BATCH = 16  # below this, a Python loop over the per-env kernels is faster
@@ -534,8 +595,9 @@ class CrowdSim:
         self.params = make_params(self.config)
         self.num_envs = B = num_envs
         n, L = self.config.num_humans, self.config.prediction_steps
-        polygons = [bounding_box(self.config.arena_size)] if self.config.bounded else []
-        self.obstacles = make_obstacles(polygons)
+        walls = self.config.bounded and self.config.orca_robot_wall_aware
+        self.robot_obstacles = make_obstacles([bounding_box(self.config.arena_size)] if walls else [])
+        self._no_obstacles = make_obstacles([])  # humans ignore walls
         self._all_idx = np.arange(n, dtype=np.int64)
         self.rng = np.zeros((B, 4), np.uint64)
         self.step_count = np.zeros(B, np.int64)
@@ -543,20 +605,23 @@ class CrowdSim:
         self.robot_pos, self.robot_vel, self.robot_goal = (np.zeros((B, 2)) for _ in range(3))
         self.human_pos, self.human_vel, self.human_goal = (np.zeros((B, n, 2)) for _ in range(3))
         self.human_radius, self.human_vpref = np.zeros((B, n)), np.zeros((B, n))
-        self.seen = np.zeros((B, n), np.bool_)
         self.seen_pos, self.seen_vel = np.zeros((B, n, 2)), np.zeros((B, n, 2))
         self.seen_radius = np.zeros((B, n))
         self.pred = np.zeros((B, n, L + 1, 2))
         self.visible = np.zeros((B, n), np.bool_)
+        self.neighbor_dist = np.zeros(B)
+        self.future_pos, self.future_vel = np.zeros((B, L + 1, n, 2)), np.zeros((B, L + 1, n, 2))
+        self.rollout_depth = np.zeros(B, np.int64)
         self.obs = np.zeros((B, self.config.obs_dim), np.float32)
         self.seeds = np.full(B, -1, np.int64)
         self._parallel = B >= PARALLEL_MIN_BATCH
-        self._scratch = _make_scratch(n, self.obstacles[0].shape[0])
+        self._scratch = _make_scratch(n, L, self.robot_obstacles[0].shape[0])
 
     # The state arrays, in the order the kernels take them.
     STATE_FIELDS = ("rng", "step_count", "potential", "robot_pos", "robot_vel", "robot_goal", "human_pos",
-                    "human_vel", "human_goal", "human_radius", "human_vpref", "seen", "seen_pos", "seen_vel",
-                    "seen_radius", "pred", "visible", "obs")
+                    "human_vel", "human_goal", "human_radius", "human_vpref", "seen_pos", "seen_vel",
+                    "seen_radius", "pred", "visible", "neighbor_dist", "future_pos", "future_vel",
+                    "rollout_depth", "obs")
 
     def _state(self):
         return tuple(getattr(self, name) for name in self.STATE_FIELDS)
@@ -591,10 +656,12 @@ class CrowdSim:
 
     def observe(self) -> np.ndarray:
         """Rebuild every slot's observation from the current state, as at the end of a step (the
-        robot's memory of observed humans is updated too). For hand-built states."""
+        robot's memory of the humans is updated too, and the humans' roll-out is recomputed when
+        next needed). For hand-built states."""
+        self.rollout_depth[:] = 0
         for b in range(self.num_envs):
             _observe(b, self.params, self.robot_pos, self.robot_vel, self.robot_goal, self.human_pos,
-                     self.human_vel, self.human_radius, self.seen, self.seen_pos, self.seen_vel,
+                     self.human_vel, self.human_radius, self.seen_pos, self.seen_vel,
                      self.seen_radius, self.pred, self.visible, self.obs, self._scratch)
         return self.obs
 
@@ -616,18 +683,22 @@ class CrowdSim:
         outs = (res.reward, res.event, res.min_distance, res.intrusion, res.intrusion_distance,
                 res.distance, res.out_of_bounds)
         if self._parallel:
-            step_many(a, self.params, self.obstacles, self._all_idx, *self._state(), *outs)
+            step_many(a, self.params, self._no_obstacles, self._all_idx, *self._state(), *outs)
         else:
             for b in range(B):
-                _step_one(b, a[b], self.params, self.obstacles, self._all_idx, *self._state(), *outs,
-                          self._scratch)
+                _step_one(b, a[b], self.params, self._no_obstacles, self._all_idx, *self._state(),
+                          *outs, self._scratch)
         return res
 
     def orca_actions(self) -> np.ndarray:
-        """The ORCA robot's velocities ``(B, 2)`` for the current observations."""
+        """The ORCA robot's velocities ``(B, 2)`` for the current observations (``config.orca_robot``
+        picks which of CrowdNav++'s two; the look-ahead robot's roll-out is reused by ``step``)."""
         out = np.empty((self.num_envs, 2))
-        args = (self.params, self.obstacles, self.robot_pos, self.robot_vel, self.robot_goal,
-                self.seen, self.seen_pos, self.seen_vel, self.seen_radius)
+        args = (self.params, self.robot_obstacles, self._no_obstacles, self._all_idx,
+                self.robot_pos, self.robot_vel, self.robot_goal, self.human_pos, self.human_vel,
+                self.human_goal, self.human_radius, self.human_vpref, self.seen_pos, self.seen_vel,
+                self.seen_radius, self.visible, self.neighbor_dist, self.future_pos,
+                self.future_vel, self.rollout_depth)
         if self._parallel:
             orca_robot_many(*args, out)
         else:

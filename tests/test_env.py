@@ -33,9 +33,10 @@ def rollout(sim, steps, policy="orca"):
     return np.stack(obs, 1)  # (B, T+1, obs_dim)
 
 
-@pytest.mark.parametrize("preset", ["paper", "crowdnavpp"])
-def test_episode_bitwise_identical_whatever_batch_and_slot(preset):
-    cfg = CrowdSimConfig(preset=preset)
+@pytest.mark.parametrize("preset,orca_robot", [("paper", "look_ahead"), ("paper", "current_state"),
+                                               ("crowdnavpp", "current_state"), ("crowdnavpp", "look_ahead")])
+def test_episode_bitwise_identical_whatever_batch_and_slot(preset, orca_robot):
+    cfg = CrowdSimConfig(preset=preset, orca_robot=orca_robot)
     seed = 777
     single = CrowdSim(cfg, 1)
     single.reset([seed])

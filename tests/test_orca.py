@@ -182,17 +182,17 @@ def test_agent_result_ignores_other_agents_preferred_velocities():
     for _ in range(10):
         sim.step(np.zeros((1, 2)))
     p = make_params(sim.config)
-    s = _make_scratch(p.n_humans, 0)
+    s = _make_scratch(p.n_humans, p.n_pred, 0)
     base = np.empty((p.n_humans, 2))
     _humans_orca(sim.human_pos[0], sim.human_vel[0], sim.human_goal[0], sim.human_radius[0],
-                 sim.human_vpref[0], np.arange(p.n_humans), p, sim.obstacles, s, base)
+                 sim.human_vpref[0], np.arange(p.n_humans), p, p.neighbor_dist, NO_OBST, s, base)
     rng = np.random.default_rng(0)
     for i in range(p.n_humans):
         goals = sim.human_goal[0] + rng.normal(0, 5, size=sim.human_goal[0].shape)
         goals[i] = sim.human_goal[0, i]
         out = np.empty_like(base)
         _humans_orca(sim.human_pos[0], sim.human_vel[0], goals, sim.human_radius[0],
-                     sim.human_vpref[0], np.arange(p.n_humans), p, sim.obstacles, s, out)
+                     sim.human_vpref[0], np.arange(p.n_humans), p, p.neighbor_dist, NO_OBST, s, out)
         assert np.array_equal(out[i], base[i])
         assert not np.array_equal(out, base)
 
@@ -222,12 +222,12 @@ def test_agent_pulled_outside_box_stays_inside(start, target):
         assert np.all(np.abs(pos) + radius <= 6.0 + 1e-6), pos
 
 
-def test_orca_robot_never_touches_a_wall_in_bounded():
-    """Over many Bounded episodes the ORCA robot collides with a wall only at the first step
-    (episodes that start within one robot radius of a wall, a faithful quirk of the spawn)."""
+def test_wall_aware_orca_robot_never_touches_a_wall_in_bounded():
+    """Over many Bounded episodes the wall-aware ORCA robot collides with a wall only at the first
+    step (episodes that start within one robot radius of a wall, a faithful quirk of the spawn)."""
     from lerobot_crowdnav.envs import CrowdNavVectorEnv
 
-    env = CrowdNavVectorEnv(64, robot_policy="orca", compute_intrusion=False)
+    env = CrowdNavVectorEnv(64, robot_policy="orca", compute_intrusion=False, orca_robot_wall_aware=True)
     env.reset(seed=10_000)
     seen = 0
     while seen < 300:
