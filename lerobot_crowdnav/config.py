@@ -142,7 +142,8 @@ class CrowdSimConfig:
     prediction_steps: int | None = None
     # Period of random human goal changes, s (paper 1, crowdnavpp 5).
     goal_change_interval: float | None = None
-    # Probability that a human changes goal at each goal-change time (0.5).
+    # Probability that a human changes goal at each goal-change time (0.5; 0 turns goal changes
+    # off, as humans.random_goal_changing = False in CrowdNav++'s ORCA-baseline config).
     goal_change_prob: float | None = None
     # Discomfort distance on surface distance, m (0.25).
     discomfort_dist: float | None = None

@@ -42,8 +42,12 @@ class RobotPolicyConfig(draccus.ChoiceRegistry):
 @RobotPolicyConfig.register_subclass("orca")
 @dataclass
 class OrcaPolicyConfig(RobotPolicyConfig):
-    """The ORCA robot (CrowdNav++'s baseline and the demonstrator): sees the humans it has
-    observed, assumes they reciprocate, and avoids the walls in the bounded variant."""
+    """The ORCA robot (CrowdNav++'s baseline and the demonstrator), one of CrowdNav++'s two, chosen
+    by --env.orca_robot: look_ahead (paper preset default; CrowdSimPred: every visible human now and
+    1..5 steps ahead on its true ORCA path, so it keeps clear of where people will be) or
+    current_state (crowdnavpp default; CrowdSimVarNum: each human where last seen, extrapolated
+    while out of sight). It ignores the Bounded walls like CrowdNav++'s robot unless
+    --env.orca_robot_wall_aware=true."""
 
 
 @RobotPolicyConfig.register_subclass("straight")
@@ -208,6 +212,14 @@ def machine_description() -> str:
     return f"{model}, {os.cpu_count()} logical cores"
 
 
+def describe_policy(policy: str, sim_cfg: CrowdSimConfig) -> str:
+    """The policy's name, with which ORCA robot ran for ``orca``."""
+    if policy != "orca":
+        return policy
+    walls = ", wall-aware" if sim_cfg.orca_robot_wall_aware and sim_cfg.bounded else ""
+    return f"orca ({sim_cfg.orca_robot}{walls})"
+
+
 def evaluate(cfg: EvalConfig) -> dict:
     cfg.eval.validate()
     sim_cfg = cfg.env.resolve()
@@ -233,6 +245,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "n_episodes": len(records),
         "split": cfg.eval.split,
         "policy": policy,
+        "policy_description": describe_policy(policy, sim_cfg),
         "env": sim_cfg.to_dict(),
         "markdown": markdown_row(metrics, sim_cfg.bounded),
         "wall_time_s": elapsed,
@@ -253,7 +266,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                 actor.chunk = None  # a new episode
                 step_policy = lambda o: actor(o[None], np.zeros(1, bool))[0]  # noqa: E731
             record_episode(single, out / "videos" / f"{policy.replace('@', '_')}_seed{seed}.gif", seed, step_policy)
-    print(f"\n{sim_cfg.task} ({sim_cfg.preset}), policy {policy}, {len(records)} {cfg.eval.split} episodes:")
+    print(f"\n{sim_cfg.task} ({sim_cfg.preset}), policy {result['policy_description']}, {len(records)} {cfg.eval.split} episodes:")
     print(markdown_header(sim_cfg.bounded))
     print(result["markdown"])
     print(f"wrote {metrics_path}")

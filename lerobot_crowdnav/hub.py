@@ -27,6 +27,14 @@ from .dataset import FPS
 REPO_IGNORE = ("images", "videos", "*.tmp")  # lerobot's push_to_hub skips images/ (no videos here)
 
 
+ORCA_ROBOT_CARD = {
+    "look_ahead": "look-ahead ORCA robot (CrowdSimPred: every visible human at its true position now "
+                  "and 1..5 steps ahead)",
+    "current_state": "current-state ORCA robot (CrowdSimVarNum: each human where last seen, "
+                     "extrapolated while out of sight)",
+}
+
+
 def dataset_card(repo_id: str, info, sim_cfg: CrowdSimConfig, collection: dict, summary: dict):
     """The dataset card (lerobot's template and YAML header) with the collection's facts."""
     outcomes = ", ".join(f"{k} {v}" for k, v in summary["outcomes"].items())
@@ -34,11 +42,11 @@ def dataset_card(repo_id: str, info, sim_cfg: CrowdSimConfig, collection: dict, 
 batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
 
 - **Environment:** `{sim_cfg.task}` ({'walls on the boundary of the 12 x 12 m workspace' if sim_cfg.bounded else 'original benchmark, no boundary'}), preset `{sim_cfg.preset}`, {sim_cfg.num_humans} ORCA humans, robot radius {sim_cfg.robot_radius} m, sensing range {sim_cfg.sensing_range} m, randomized human attributes: {sim_cfg.randomize_attributes}.
-- **Demonstrator:** the ORCA robot (radius r + {sim_cfg.orca_radius_pad + sim_cfg.orca_safety_space:.2f} m, neighbour distance {sim_cfg.orca_neighbor_dist} m, time horizons {sim_cfg.orca_time_horizon} s / {sim_cfg.orca_time_horizon_obst} s, max speed {sim_cfg.robot_v_pref} m/s{', walls as static obstacles' if sim_cfg.bounded else ''}).
+- **Demonstrator:** CrowdNav++'s {ORCA_ROBOT_CARD[sim_cfg.orca_robot]} (`orca_robot={sim_cfg.orca_robot}`; radius r + {sim_cfg.orca_radius_pad + sim_cfg.orca_safety_space:.2f} m, neighbour distance {sim_cfg.orca_neighbor_dist} m{' redrawn from U' + str(tuple(sim_cfg.neighbor_dist_range)) + ' at every new human' if sim_cfg.randomize_neighbor_dist else ''}, time horizons {sim_cfg.orca_time_horizon} s / {sim_cfg.orca_time_horizon_obst} s, max speed {sim_cfg.robot_v_pref} m/s{(', walls as static obstacles' if sim_cfg.orca_robot_wall_aware else ', unaware of the walls as in CrowdNav++') if sim_cfg.bounded else ''}).
 - **Episodes:** {summary['episodes']} ({summary['frames']} frames at {FPS} fps), train seeds {summary['first_seed']} to {summary['last_seed']} (consecutive seeds from {collection['seed']}, keep = `{collection['keep']}`). Outcomes: {outcomes}.
 - **Features:** `observation.state` (269 floats: robot state, velocity, 20 humans x 6 positions relative to the robot, visibility mask; names in `meta/info.json`), `action` = executed velocity (vx, vy) in m/s, `next.reward`, `next.done`, `next.success`. Episode metadata (`meta/episodes`) adds `seed` and `event`.
 - **Action chunks:** not stored. A policy with `action_delta_indices = range(H)` (PDPO: H = 5) gets, at step t, the executed actions t .. t+H-1 of the same episode through lerobot's `delta_timestamps` (`[0, 0.25, ..., (H-1)/4]` s), with `action_is_pad` marking the steps past the episode's end.
-- **Collected with:** `python datasets_scripts/collect_orca.py --episodes {collection['episodes']} --env.task={sim_cfg.task} --env.preset={sim_cfg.preset} --seed={collection['seed']} --keep={collection['keep']}` in {summary['wall_time_s']:.1f} s.
+- **Collected with:** `python datasets_scripts/collect_orca.py --episodes {collection['episodes']} --env.task={sim_cfg.task} --env.preset={sim_cfg.preset} --env.orca_robot={sim_cfg.orca_robot} --seed={collection['seed']} --keep={collection['keep']}` in {summary['wall_time_s']:.1f} s.
 """
     return create_lerobot_dataset_card(
         tags=["crowd-navigation", "orca", "lerobot-crowdnav", "pdpo"], dataset_info=info,

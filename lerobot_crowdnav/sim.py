@@ -474,7 +474,7 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
 
     # (5) Random goal changes when due, then respawn of humans that reached their goal.
     r = rng[b]
-    if step_count[b] % p.goal_every == 0:
+    if p.goal_prob > 0.0 and step_count[b] % p.goal_every == 0:  # 0: goal changes off
         _change_goals(r, rp[b], rg[b], hp[b], hg[b], hr[b], hvp[b], p)
     for i in range(n):
         if (hg[b, i, 0] - hp[b, i, 0]) ** 2 + (hg[b, i, 1] - hp[b, i, 1]) ** 2 < hr[b, i] ** 2:
@@ -542,26 +542,30 @@ def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg
 
 
 @nb.njit(cache=True, parallel=True)
-def step_many(actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
+def step_many(n_chunks, actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
               hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth,
               obs, out_reward, out_event, out_dmin, out_intrusion, out_intr_dist, out_distance,
               out_oob):
-    for b in nb.prange(actions.shape[0]):
+    n_env = actions.shape[0]
+    for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, 0)
-        _step_one(b, actions[b], p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp,
-                  hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel,
-                  rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
-                  out_intr_dist, out_distance, out_oob, s)
+        for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
+            _step_one(b, actions[b], p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg,
+                      hp, hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos,
+                      fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
+                      out_intr_dist, out_distance, out_oob, s)
 
 
 @nb.njit(cache=True, parallel=True)
-def orca_robot_many(p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+def orca_robot_many(n_chunks, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
                     seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth, out):
-    for b in nb.prange(rp.shape[0]):
+    n_env = rp.shape[0]
+    for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, robot_obst[0].shape[0])
-        _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp,
-                        seen_pos, seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth,
-                        s, out)
+        for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
+            _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp,
+                            seen_pos, seen_vel, seen_r, visible, nd, fut_pos, fut_vel,
+                            rollout_depth, s, out)
 
 
 PARALLEL_MIN_BATCH = 16  # below this, a Python loop over the per-env kernels is faster
@@ -683,7 +687,7 @@ class CrowdSim:
         outs = (res.reward, res.event, res.min_distance, res.intrusion, res.intrusion_distance,
                 res.distance, res.out_of_bounds)
         if self._parallel:
-            step_many(a, self.params, self._no_obstacles, self._all_idx, *self._state(), *outs)
+            step_many(self._n_chunks(), a, self.params, self._no_obstacles, self._all_idx, *self._state(), *outs)
         else:
             for b in range(B):
                 _step_one(b, a[b], self.params, self._no_obstacles, self._all_idx, *self._state(),
@@ -700,11 +704,16 @@ class CrowdSim:
                 self.seen_radius, self.visible, self.neighbor_dist, self.future_pos,
                 self.future_vel, self.rollout_depth)
         if self._parallel:
-            orca_robot_many(*args, out)
+            orca_robot_many(self._n_chunks(), *args, out)
         else:
             for b in range(self.num_envs):
                 _orca_robot_one(b, *args, self._scratch, out)
         return out
+
+    def _n_chunks(self) -> int:
+        """Contiguous env chunks for the parallel kernels: a few per thread for load balance, each
+        with one scratch allocation (not one per env)."""
+        return min(self.num_envs, 4 * nb.get_num_threads())
 
     def clip_actions(self, actions: np.ndarray) -> np.ndarray:
         """What ``step`` executes: each velocity scaled down to norm v_pref if faster."""
