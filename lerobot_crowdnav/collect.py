@@ -90,19 +90,21 @@ def rollout_block(sim: CrowdSim, seeds: np.ndarray) -> list[dict]:
     obs = np.empty((t_max, sim.num_envs, sim.config.obs_dim), np.float32)
     act = np.empty((t_max, sim.num_envs, 2), np.float32)
     rew = np.empty((t_max, sim.num_envs), np.float32)
-    end = np.full(sim.num_envs, -1)
+    end = np.full(sim.num_envs, -1)  # episode length once ended; idle slots never run
+    end[b:] = 0
     event = np.zeros(sim.num_envs, np.int64)
     for t in range(t_max):
+        running = end < 0  # ended slots are not simulated further
+        if not running.any():
+            break
         obs[t] = sim.obs
-        a = sim.clip_actions(sim.orca_actions())
-        res = sim.step(a)
+        a = sim.clip_actions(sim.orca_actions(running))
+        res = sim.step(a, running)
         act[t] = a
         rew[t] = res.reward
-        new = (res.event != RUNNING) & (end < 0)
+        new = running & (res.event != RUNNING)
         end[new] = t + 1
         event[new] = res.event[new]
-        if np.all(end[:b] > 0):
-            break
     return [{"seed": int(seeds[i]), "event": EVENT_NAMES[event[i]], "success": bool(event[i] == SUCCESS),
              "obs": obs[: end[i], i], "action": act[: end[i], i], "reward": rew[: end[i], i]}
             for i in range(b)]
