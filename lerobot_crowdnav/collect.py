@@ -114,6 +114,7 @@ def collect(cfg: CollectConfig) -> dict:
     root = cfg.validate()
     sim_cfg = dataclasses.replace(cfg.env, compute_intrusion=False).resolve()
     collection = {"repo_id": cfg.repo_id, "seed": cfg.seed, "keep": cfg.keep, "policy": "orca",
+                  "demonstrator": sim_cfg.orca_description,
                   "env": sim_cfg.to_dict(), "episodes": cfg.episodes}
     if cfg.overwrite and root.exists():
         shutil.rmtree(root)

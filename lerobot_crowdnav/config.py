@@ -185,6 +185,12 @@ class CrowdSimConfig:
     def bounded(self) -> bool:
         return self.task == "BoundedCrowdNav-v0"
 
+    @property
+    def orca_description(self) -> str:
+        """Which ORCA robot this env runs, e.g. ``orca (look_ahead)`` (resolved configs only)."""
+        walls = ", wall-aware" if self.orca_robot_wall_aware and self.bounded else ""
+        return f"orca ({self.orca_robot}{walls})"
+
     def resolve(self) -> CrowdSimConfig:
         """A copy with every ``None`` replaced by the preset value, validated."""
         if self.task not in TASKS:

@@ -212,14 +212,6 @@ def machine_description() -> str:
     return f"{model}, {os.cpu_count()} logical cores"
 
 
-def describe_policy(policy: str, sim_cfg: CrowdSimConfig) -> str:
-    """The policy's name, with which ORCA robot ran for ``orca``."""
-    if policy != "orca":
-        return policy
-    walls = ", wall-aware" if sim_cfg.orca_robot_wall_aware and sim_cfg.bounded else ""
-    return f"orca ({sim_cfg.orca_robot}{walls})"
-
-
 def evaluate(cfg: EvalConfig) -> dict:
     cfg.eval.validate()
     sim_cfg = cfg.env.resolve()
@@ -245,7 +237,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         "n_episodes": len(records),
         "split": cfg.eval.split,
         "policy": policy,
-        "policy_description": describe_policy(policy, sim_cfg),
+        "policy_description": sim_cfg.orca_description if policy == "orca" else policy,
         "env": sim_cfg.to_dict(),
         "markdown": markdown_row(metrics, sim_cfg.bounded),
         "wall_time_s": elapsed,

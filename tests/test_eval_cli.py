@@ -42,6 +42,9 @@ def test_eval_writes_metrics_and_prints_row(tmp_path, capsys, policy, task):
     assert result["policy"] == policy and result["split"] == "test"
     assert result["env"]["task"] == task and result["env"]["preset"] == "paper"
     assert result["env"]["num_humans"] == 20  # the resolved config, not the None placeholders
+    # Which ORCA robot ran: the paper preset's look-ahead one, wall-unaware.
+    assert result["env"]["orca_robot"] == "look_ahead" and not result["env"]["orca_robot_wall_aware"]
+    assert result["policy_description"] == ("orca (look_ahead)" if policy == "orca" else policy)
 
     episodes = result["episodes"]
     assert [e["seed"] for e in episodes] == split_seeds("test", 12)
@@ -142,7 +145,9 @@ def test_module_help_mentions_every_setting():
     assert res.returncode == 0, res.stderr
     for f in dataclasses.fields(EvalSettings):
         assert f"--eval.{f.name}" in res.stdout, f.name
-    for flag in ("--policy.type {orca,straight,pretrained}", "--policy.path", "--env.task", "--env.preset", "--output_dir", "--overwrite"):
+    for flag in ("--policy.type {orca,straight,pretrained}", "--policy.path", "--env.task", "--env.preset",
+                 "--env.orca_robot", "--env.orca_robot_wall_aware", "--env.randomize_neighbor_dist",
+                 "--output_dir", "--overwrite"):
         assert flag in res.stdout, flag
 
 
@@ -174,7 +179,7 @@ def test_undefined_metrics_are_null_in_strict_json(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("name", ["bounded_orca", "bounded_straight", "original_orca",
-                                  "original_straight", "original_crowdnavpp_orca"])
+                                  "original_straight", "original_crowdnavpp_orca", "crowdnavpp_orca_baseline"])
 def test_shipped_eval_configs_parse(name):
     import draccus
 
@@ -183,7 +188,29 @@ def test_shipped_eval_configs_parse(name):
     cfg = draccus.parse(EvalConfig, config_path=f"configs/eval/{name}.yaml", args=[])
     sim = cfg.env.resolve()
     assert sim.bounded == name.startswith("bounded")
-    assert cfg.policy.name == name.rsplit("_", 1)[1]
+    assert cfg.policy.name == ("orca" if "orca" in name else "straight")
     assert cfg.eval.n_episodes == 500 and cfg.eval.split == "test"
     if "crowdnavpp" in name:
         assert sim.preset == "crowdnavpp" and sim.randomize_attributes is False
+        assert sim.orca_robot == "current_state" and not sim.randomize_neighbor_dist
+    if name == "crowdnavpp_orca_baseline":
+        assert sim.goal_change_prob == 0.0
+
+
+def test_baselines_command_writes_tables_and_resumes(tmp_path, capsys):
+    from lerobot_crowdnav.baselines import main as baselines_main
+
+    args = ["--n_episodes=4", "--batch_size=4", "--only=[crowdnavpp_orca_baseline]", f"--output_dir={tmp_path}"]
+    baselines_main(args)
+    text = (tmp_path / "baselines.md").read_text()
+    assert "| ORCA look-ahead |" in text and "| ORCA current-state |" in text
+    metrics = sorted(tmp_path.rglob("metrics.json"))
+    assert len(metrics) == 2
+    row = json.loads(metrics[0].read_text())
+    assert row["n_episodes"] == 4 and row["env"]["goal_change_prob"] == 0.0
+    stamps = [m.stat().st_mtime_ns for m in metrics]
+    baselines_main(args)  # a rerun keeps finished rows
+    assert [m.stat().st_mtime_ns for m in metrics] == stamps
+    assert (tmp_path / "baselines.md").read_text() == text
+    with pytest.raises(SystemExit, match="unknown tables"):
+        baselines_main(["--only=[nope]", f"--output_dir={tmp_path}"])
