@@ -15,6 +15,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from . import layout
+
 TASKS = ("CrowdNav-v0", "BoundedCrowdNav-v0")
 """``CrowdNav-v0``: the original benchmark, no boundary. ``BoundedCrowdNav-v0``: walls on the
 boundary of the ``[-arena_size, arena_size]^2`` workspace; touching one is a collision."""
@@ -210,7 +212,7 @@ class CrowdSimConfig:
 
     @property
     def obs_dim(self) -> int:
-        return 7 + 2 + self.num_humans * 2 * (self.prediction_steps + 1) + self.num_humans
+        return layout.obs_dim(self.num_humans, self.prediction_steps)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -1,4 +1,4 @@
-"""The exact fast ``LeRobotDataset`` reads of ``lerobot_crowdnav.fast_loader``: whole items equal to
+"""The exact fast ``LeRobotDataset`` reads of ``lerobot_crowdnav.data.fast_loader``: whole items equal to
 lerobot's own path (padding, episode filtering, chunk boundaries, dtypes), the guards, the opt-out,
 and the stock lerobot-train start-up (plugin loading, spawned DataLoader workers) installing it."""
 
@@ -19,7 +19,7 @@ import torch
 from lerobot.datasets.dataset_reader import DatasetReader
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_crowdnav import fast_loader
+from lerobot_crowdnav.data import fast_loader
 from lerobot_crowdnav.collect import main as collect_main
 
 REPO = "local/test_fast_loader"
@@ -208,7 +208,7 @@ def test_install_is_idempotent_reversible_and_guarded(monkeypatch):
 def test_opt_out_leaves_lerobot_untouched():
     code = ("from lerobot.utils.import_utils import register_third_party_plugins; register_third_party_plugins(); "
             "from lerobot.envs.configs import EnvConfig; from lerobot.datasets.dataset_reader import DatasetReader; "
-            "from lerobot_crowdnav import fast_loader; "
+            "from lerobot_crowdnav.data import fast_loader; "
             "names = ('get_item', '_query_hf_dataset', '_get_query_indices'); "
             "print(EnvConfig.get_choice_class('crowdnav').__name__, fast_loader.is_installed(), "
             "all(DatasetReader.__dict__[n].__module__ == 'lerobot.datasets.dataset_reader' for n in names), "
@@ -225,13 +225,13 @@ from torch.utils.data import DataLoader, default_collate
 
 
 def probe(batch):  # runs in the DataLoader worker
-    from lerobot_crowdnav import fast_loader
+    from lerobot_crowdnav.data import fast_loader
     return default_collate(batch), fast_loader.is_installed()
 
 
 if __name__ == "__main__":
     root, out = sys.argv[1:3]
-    from lerobot_crowdnav import fast_loader  # importing it installs nothing
+    from lerobot_crowdnav.data import fast_loader  # importing it installs nothing
     print("BEFORE", fast_loader.is_installed())
     from lerobot.scripts.lerobot_train import main  # what the lerobot-train console script runs
     sys.argv = ["lerobot-train", "--policy.type=pdpo", "--dataset.repo_id=REPO", f"--dataset.root={root}",
