@@ -205,18 +205,20 @@ def test_install_is_idempotent_reversible_and_guarded(monkeypatch):
     assert not fast_loader.install() and not fast_loader.is_installed()
 
 
-def test_opt_out_leaves_lerobot_untouched():
+def test_loading_the_plugins_leaves_lerobot_untouched():
+    """Opt-in: lerobot's plugin discovery (env and policy plugins) patches nothing."""
     code = ("from lerobot.utils.import_utils import register_third_party_plugins; register_third_party_plugins(); "
-            "from lerobot.envs.configs import EnvConfig; from lerobot.datasets.dataset_reader import DatasetReader; "
+            "from lerobot.envs.configs import EnvConfig; from lerobot.configs.policies import PreTrainedConfig; "
+            "from lerobot.datasets.dataset_reader import DatasetReader; "
             "from lerobot_crowdnav.data import fast_loader; "
             "names = ('get_item', '_query_hf_dataset', '_get_query_indices'); "
-            "print(EnvConfig.get_choice_class('crowdnav').__name__, fast_loader.is_installed(), "
+            "print(EnvConfig.get_choice_class('crowdnav').__name__, PreTrainedConfig.get_choice_class('pdpo').__name__, "
+            "fast_loader.is_installed(), "
             "all(DatasetReader.__dict__[n].__module__ == 'lerobot.datasets.dataset_reader' for n in names), "
             "'__getstate__' in DatasetReader.__dict__)")
-    env = {**os.environ, fast_loader.ENV_VAR: "0"}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split()[-4:] == ["CrowdNavEnvConfig", "False", "True", "False"]
+    assert out.stdout.split()[-5:] == ["CrowdNavEnvConfig", "PDPOConfig", "False", "True", "False"]
 
 
 TRAIN_SCRIPT = '''
@@ -257,5 +259,6 @@ def test_stock_lerobot_train_runs_with_the_fast_loader(dataset_root, tmp_path):
     lines = dict(line.split(" ", 1) for line in out.stdout.splitlines()
                  if line.startswith(("BEFORE ", "AFTER_TRAIN ", "SPAWNED_WORKER ")))
     assert lines["BEFORE"] == "False" and lines["AFTER_TRAIN"] == "True", out.stdout
+    assert (out.stdout + out.stderr).count("fast LeRobotDataset reads active") == 1  # one INFO line
     assert lines["SPAWNED_WORKER"] == "True (4, 5, 2)", out.stdout
     assert (tmp_path / "train" / "checkpoints" / "000002" / "pretrained_model" / "model.safetensors").exists()
