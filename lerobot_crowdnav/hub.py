@@ -136,8 +136,9 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
         f"sinusoidal timestep embedding; cosine schedule, epsilon prediction, K = {config.get('num_diffusion_steps')} "
         f"DDPM steps; EMA sampling weights: {config.get('use_ema')} (decay {config.get('ema_decay')}).",
         f"- Value head (critic): MLP {config.get('value_mlp_dims')}, Mish.",
-        f"- Parameters: actor (encoder + denoiser) {counts['actor'] / 1e6:.3f} M (paper: 0.848 M); critic "
-        f"{counts['critic'] / 1e6:.3f} M (paper: 0.201 M).", "",
+        f"- Parameters: actor (encoder + denoiser) {counts['actor'] / 1e6:.3f} M (paper: 0.848 M); "
+        + (f"critic {counts['critic'] / 1e6:.3f} M (paper: 0.201 M)." if counts["critic"]
+           else "no critic (a BC policy: diffusion PPO adds one)."), "",
         "## Training", "",
         f"- Data: `{dataset}`" + (f" ({train.get('dataset', {}).get('root')})" if train else "") + ".",
         f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
