@@ -15,6 +15,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from . import layout
+
 TASKS = ("CrowdNav-v0", "BoundedCrowdNav-v0")
 ORCA_ROBOTS = ("look_ahead", "current_state")
 """The two ORCA robots of CrowdNav++ (docs/simulator.md, "The ORCA robot"). ``look_ahead``
@@ -249,7 +251,7 @@ class CrowdSimConfig:
 
     @property
     def obs_dim(self) -> int:
-        return 7 + 2 + self.num_humans * 2 * (self.prediction_steps + 1) + self.num_humans
+        return layout.obs_dim(self.num_humans, self.prediction_steps)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

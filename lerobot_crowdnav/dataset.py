@@ -41,7 +41,8 @@ from lerobot.datasets.feature_utils import get_hf_features_from_features
 from lerobot.datasets.io_utils import load_info, load_stats, write_info, write_stats
 
 from .config import CrowdSimConfig
-from .sim import EVENT_NAMES, ROBOT_DIM
+from .layout import ROBOT_DIM
+from .sim import EVENT_NAMES
 
 FPS = 4
 TASK = "Navigate to the goal through the crowd."

@@ -43,7 +43,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .config import SEED_SPLITS, CrowdSimConfig
-from .sim import EVENT_NAMES, ROBOT_DIM, RUNNING, SUCCESS, TIMEOUT, CrowdSim
+from .layout import ROBOT_DIM, SELF_DIM
+from .sim import EVENT_NAMES, RUNNING, SUCCESS, TIMEOUT, CrowdSim
 
 ROBOT_POLICIES = ("orca", "straight")
 
@@ -61,7 +62,7 @@ def structured(obs: np.ndarray, num_humans: int = 20, prediction_steps: int = 5)
     obs = np.asarray(obs)
     lead = obs.shape[:-1]
     row = 2 * (prediction_steps + 1)
-    h0 = ROBOT_DIM + 2
+    h0 = SELF_DIM
     h1 = h0 + num_humans * row
     if obs.shape[-1] != h1 + num_humans:
         raise ValueError(f"observation has {obs.shape[-1]} values, expected {h1 + num_humans}")

@@ -13,6 +13,8 @@ pretrained_model> --repo_id=<org>/<name> --push_to_hub_dir=<dir> [--overwrite=tr
 
 from __future__ import annotations
 
+import math
+
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -93,19 +95,23 @@ def split_repo_id(repo_id: str) -> tuple[str, str]:
 
 
 def parameter_counts(weights: Path) -> dict[str, int]:
+    """Actor and critic sizes of a PDPO checkpoint: the actor in ``model.safetensors``, the
+    critic in ``critic.safetensors`` beside it (fine-tuned; none for BC). Checkpoints from before
+    the actor/critic split hold ``encoder``/``denoiser``/``value`` in ``model.safetensors``."""
     from safetensors import safe_open
 
     counts = {"actor": 0, "critic": 0}
-    with safe_open(str(weights), "pt") as f:
-        for key in f.keys():
-            part = key.split(".")[0]
-            numel = 1
-            for d in f.get_slice(key).get_shape():
-                numel *= d
-            if part in ("encoder", "denoiser"):
-                counts["actor"] += numel
-            elif part == "value":
-                counts["critic"] += numel
+    critic_file = Path(weights).with_name("critic.safetensors")
+    for path, critic_prefix in ((Path(weights), "value."), (critic_file, "")):
+        if not path.exists():
+            continue
+        with safe_open(str(path), "pt") as f:
+            for key in f.keys():
+                numel = math.prod(f.get_slice(key).get_shape())
+                if key.startswith(("actor.", "encoder.", "denoiser.")):
+                    counts["actor"] += numel
+                elif key.startswith(critic_prefix):
+                    counts["critic"] += numel
     return counts
 
 
@@ -138,8 +144,9 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
         f"sinusoidal timestep embedding; cosine schedule, epsilon prediction, K = {config.get('num_diffusion_steps')} "
         f"DDPM steps; EMA sampling weights: {config.get('use_ema')} (decay {config.get('ema_decay')}).",
         f"- Value head (critic): MLP {config.get('value_mlp_dims')}, Mish.",
-        f"- Parameters: actor (encoder + denoiser) {counts['actor'] / 1e6:.3f} M (paper: 0.848 M); critic "
-        f"{counts['critic'] / 1e6:.3f} M (paper: 0.201 M).", "",
+        f"- Parameters: actor (encoder + denoiser) {counts['actor'] / 1e6:.3f} M (paper: 0.848 M); "
+        + (f"critic {counts['critic'] / 1e6:.3f} M (paper: 0.201 M)." if counts["critic"]
+           else "no critic (a BC policy: diffusion PPO adds one)."), "",
         "## Training", "",
         f"- Data: `{dataset}`" + (f" ({train.get('dataset', {}).get('root')})" if train else "") + ".",
         f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
@@ -189,7 +196,7 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
     if pickles:
         raise ValueError(f"refusing pickled files {pickles}: the hub format holds safetensors only")
     files = [p for p in pretrained.iterdir() if p.is_file() and (
-        p.name in ("config.json", "model.safetensors", "train_config.json", "finetune_config.json")
+        p.name in ("config.json", "model.safetensors", "critic.safetensors", "train_config.json", "finetune_config.json")
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
     card = policy_card(pretrained, repo_id, metrics)

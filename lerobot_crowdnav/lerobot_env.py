@@ -4,8 +4,6 @@ Every simulator field is a flag (``--env.preset=crowdnavpp --env.randomize_attri
 lerobot discovers this module through the ``lerobot_env_crowdnav`` plugin distribution (see
 ``plugins/``), installed by the README's set-up. ``create_envs`` returns the native batched env,
 with dict observations ``{"agent_pos": (B, 269)}`` that lerobot maps to ``observation.state``.
-Importing it also installs the exact, faster ``LeRobotDataset`` reads of ``fast_loader`` (opt out
-with ``LEROBOT_CROWDNAV_FAST_LOADER=0``), so ``lerobot-train`` on our datasets is not loader-bound.
 """
 
 from __future__ import annotations
@@ -18,9 +16,6 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .config import CrowdSimConfig
 from .envs import CrowdNavVectorEnv
-from .fast_loader import install as _install_fast_loader
-
-_install_fast_loader()
 
 
 @EnvConfig.register_subclass("crowdnav")

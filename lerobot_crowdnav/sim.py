@@ -41,13 +41,13 @@ import numba as nb
 import numpy as np
 
 from .config import ORCA_ROBOTS, CrowdSimConfig
+from .layout import SELF_DIM
 from .orca import bounding_box, compute_new_velocity, insert_sorted, make_obstacles
 
 # Episode events (``info["event"]``).
 RUNNING, SUCCESS, HUMAN_COLLISION, WALL_COLLISION, TIMEOUT = 0, 1, 2, 3, 4
 EVENT_NAMES = ("running", "success", "human_collision", "wall_collision", "timeout")
 
-ROBOT_DIM = 7  # px, py, radius, gx, gy, v_pref, theta
 ROBOT_THETA = math.pi / 2  # holonomic robot: heading stays at its initial pi/2 (CrowdNav++)
 # CrowdNav++'s stand-in for a human the robot has never seen: (15, 15), v = 0, r = 0.3.
 DUMMY_POS, DUMMY_RADIUS = 15.0, 0.3
@@ -347,7 +347,7 @@ def _observe(b, p, rp, rv, rg, hp, hv, hr, seen_pos, seen_vel, seen_r, pred, vis
             seen_pos[b, i, 0] += seen_vel[b, i, 0] * p.dt
             seen_pos[b, i, 1] += seen_vel[b, i, 1] * p.dt
     row_len = 2 * (L + 1)
-    base = ROBOT_DIM + 2
+    base = SELF_DIM
     mask_base = base + n * row_len
     for q in range(n):
         off = base + q * row_len

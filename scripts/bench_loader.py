@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Data-loading throughput of a LeRobotDataset with and without ``lerobot_crowdnav.fast_loader``,
+"""Data-loading throughput of a LeRobotDataset with and without ``lerobot_crowdnav.data.fast_loader``,
 against PDPO's training step.
 
 Measures, interleaving lerobot's own path (``orig``) and the fast path (``fast``) in alternating
@@ -54,7 +54,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def set_mode(mode: str) -> None:
-    from lerobot_crowdnav import fast_loader
+    from lerobot_crowdnav.data import fast_loader
 
     if mode == "fast":
         if not fast_loader.install():

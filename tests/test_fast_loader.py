@@ -1,4 +1,4 @@
-"""The exact fast ``LeRobotDataset`` reads of ``lerobot_crowdnav.fast_loader``: whole items equal to
+"""The exact fast ``LeRobotDataset`` reads of ``lerobot_crowdnav.data.fast_loader``: whole items equal to
 lerobot's own path (padding, episode filtering, chunk boundaries, dtypes), the guards, the opt-out,
 and the stock lerobot-train start-up (plugin loading, spawned DataLoader workers) installing it."""
 
@@ -19,7 +19,7 @@ import torch
 from lerobot.datasets.dataset_reader import DatasetReader
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_crowdnav import fast_loader
+from lerobot_crowdnav.data import fast_loader
 from lerobot_crowdnav.collect import main as collect_main
 
 REPO = "local/test_fast_loader"
@@ -205,18 +205,20 @@ def test_install_is_idempotent_reversible_and_guarded(monkeypatch):
     assert not fast_loader.install() and not fast_loader.is_installed()
 
 
-def test_opt_out_leaves_lerobot_untouched():
+def test_loading_the_plugins_leaves_lerobot_untouched():
+    """Opt-in: lerobot's plugin discovery (env and policy plugins) patches nothing."""
     code = ("from lerobot.utils.import_utils import register_third_party_plugins; register_third_party_plugins(); "
-            "from lerobot.envs.configs import EnvConfig; from lerobot.datasets.dataset_reader import DatasetReader; "
-            "from lerobot_crowdnav import fast_loader; "
+            "from lerobot.envs.configs import EnvConfig; from lerobot.configs.policies import PreTrainedConfig; "
+            "from lerobot.datasets.dataset_reader import DatasetReader; "
+            "from lerobot_crowdnav.data import fast_loader; "
             "names = ('get_item', '_query_hf_dataset', '_get_query_indices'); "
-            "print(EnvConfig.get_choice_class('crowdnav').__name__, fast_loader.is_installed(), "
+            "print(EnvConfig.get_choice_class('crowdnav').__name__, PreTrainedConfig.get_choice_class('pdpo').__name__, "
+            "fast_loader.is_installed(), "
             "all(DatasetReader.__dict__[n].__module__ == 'lerobot.datasets.dataset_reader' for n in names), "
             "'__getstate__' in DatasetReader.__dict__)")
-    env = {**os.environ, fast_loader.ENV_VAR: "0"}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split()[-4:] == ["CrowdNavEnvConfig", "False", "True", "False"]
+    assert out.stdout.split()[-5:] == ["CrowdNavEnvConfig", "PDPOConfig", "False", "True", "False"]
 
 
 TRAIN_SCRIPT = '''
@@ -225,13 +227,13 @@ from torch.utils.data import DataLoader, default_collate
 
 
 def probe(batch):  # runs in the DataLoader worker
-    from lerobot_crowdnav import fast_loader
+    from lerobot_crowdnav.data import fast_loader
     return default_collate(batch), fast_loader.is_installed()
 
 
 if __name__ == "__main__":
     root, out = sys.argv[1:3]
-    from lerobot_crowdnav import fast_loader  # importing it installs nothing
+    from lerobot_crowdnav.data import fast_loader  # importing it installs nothing
     print("BEFORE", fast_loader.is_installed())
     from lerobot.scripts.lerobot_train import main  # what the lerobot-train console script runs
     sys.argv = ["lerobot-train", "--policy.type=pdpo", "--dataset.repo_id=REPO", f"--dataset.root={root}",
@@ -257,5 +259,6 @@ def test_stock_lerobot_train_runs_with_the_fast_loader(dataset_root, tmp_path):
     lines = dict(line.split(" ", 1) for line in out.stdout.splitlines()
                  if line.startswith(("BEFORE ", "AFTER_TRAIN ", "SPAWNED_WORKER ")))
     assert lines["BEFORE"] == "False" and lines["AFTER_TRAIN"] == "True", out.stdout
+    assert (out.stdout + out.stderr).count("fast LeRobotDataset reads active") == 1  # one INFO line
     assert lines["SPAWNED_WORKER"] == "True (4, 5, 2)", out.stdout
     assert (tmp_path / "train" / "checkpoints" / "000002" / "pretrained_model" / "model.safetensors").exists()

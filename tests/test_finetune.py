@@ -16,9 +16,13 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_policy_pdpo import PDPOPolicy
 
-from lerobot_crowdnav import finetune as ft
+from lerobot_crowdnav.envs import CrowdNavVectorEnv
 from lerobot_crowdnav.eval import main as eval_main
-from lerobot_crowdnav.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
+from lerobot_crowdnav.rl import finetune as ft
+from lerobot_crowdnav.rl.config import DiffusionPPOConfig
+from lerobot_crowdnav.rl.dppo import CRITIC_FILE, ValueHead, load_agent, transition_log_prob
+from lerobot_crowdnav.rl.loop import Collector, Columns, update
+from lerobot_crowdnav.rl.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
 
 from conftest import make_tiny_checkpoint, small_pdpo_config
 
@@ -91,11 +95,10 @@ def test_chain_log_prob_equals_an_independent_computation():
     policy = PDPOPolicy(cfg).eval()
     state = torch.randn(3, 269)
     state[:, -20:] = (torch.rand(3, 20) < 0.5).float()
-    chunk, chain = policy.sample(state, generator=torch.Generator().manual_seed(0), exploration_std=0.1,
-                                 return_chain=True)
-    assert chain.shape == (3, 5, 5, 2) and chunk.shape == (3, 5, 2)
-    torch.testing.assert_close(chunk, chain[:, -1].clamp(-1, 1))
-    logp, _ = policy.chain_log_prob(state, chain, min_std=0.1)
+    chain = policy.sample_chain(state, generator=torch.Generator().manual_seed(0), exploration_std=0.1)
+    assert chain.shape == (3, 5, 5, 2)
+    z = policy.actor.encoder(state)
+    logp = transition_log_prob(policy.actor, z, chain, min_std=0.1)
 
     # Independent: the schedule from its formula in float64, the Gaussian density written out.
     K = cfg.num_diffusion_steps
@@ -106,11 +109,10 @@ def test_chain_log_prob_equals_an_independent_computation():
     betas = np.clip(1 - ac[1:] / ac[:-1], 0, 0.999)
     abar = np.cumprod(1 - betas)
     abar_prev = np.concatenate([[1.0], abar[:-1]])
-    z = policy.encoder(state)
     expected = np.zeros((3, 4))
     for i, k in enumerate(range(3, -1, -1)):
         xk = chain[:, i].double()
-        eps = policy.denoiser(chain[:, i], torch.full((3,), k), z).double()
+        eps = policy.actor.denoiser(chain[:, i], torch.full((3,), k), z).double()
         x0 = (xk / math.sqrt(abar[k]) - math.sqrt(1 / abar[k] - 1) * eps).clamp(-1, 1)
         mean = (betas[k] * math.sqrt(abar_prev[k]) * x0 + (1 - abar_prev[k]) * math.sqrt(1 - betas[k]) * xk) / (1 - abar[k])
         std = max(math.sqrt(betas[k] * (1 - abar_prev[k]) / (1 - abar[k])), 0.1)
@@ -124,10 +126,10 @@ def test_frozen_base_runs_the_first_steps_and_trained_nets_the_last():
     policy = PDPOPolicy(cfg).eval()
     state = torch.randn(2, 269)
     state[:, -20:] = 1.0
-    sample = lambda: policy.sample(state, generator=torch.Generator().manual_seed(0), return_chain=True)[1]  # noqa: E731
+    sample = lambda: policy.sample_chain(state, generator=torch.Generator().manual_seed(0))  # noqa: E731
     before = sample()
     with torch.no_grad():
-        policy.denoiser.net[-1].bias.add_(0.5)  # change the trained denoiser only
+        policy.actor.denoiser.net[-1].bias.add_(0.5)  # change the trained denoiser only
     after = sample()
     torch.testing.assert_close(before[:, 0], after[:, 0])  # x_{K'} comes from the frozen steps
     assert not torch.allclose(before[:, 1:], after[:, 1:])
@@ -135,19 +137,36 @@ def test_frozen_base_runs_the_first_steps_and_trained_nets_the_last():
 
 
 # -- the trainer ---------------------------------------------------------------------------------
-def test_first_minibatch_ratio_is_exactly_one(pretrained, tmp_path, monkeypatch):
-    seen = []
-    real = ft.ppo_losses
+class _Recording(torch.nn.Module):
+    """The actor-critic as the update sees it, recording each minibatch's log-probabilities."""
 
-    def spy(new_logp, old_logp, *args):
-        seen.append((new_logp.detach().clone(), old_logp.clone()))
-        return real(new_logp, old_logp, *args)
+    def __init__(self, agent):
+        super().__init__()
+        self.agent, self.seen = agent, []
 
-    monkeypatch.setattr(ft, "ppo_losses", spy)
-    run(pretrained, tmp_path / "run", "--env_steps=32", "--ppo.n_critic_warmup_itr=0")
-    new, old = seen[0]
-    assert torch.equal(new, old)  # bitwise: ratio exactly 1
-    assert any(not torch.equal(n, o) for n, o in seen[1:])  # later minibatches see updated weights
+    def forward(self, *args):
+        scores = self.agent(*args)
+        self.seen.append(scores.logp.detach().clone())
+        return scores
+
+
+def test_first_minibatch_ratio_is_exactly_one(pretrained):
+    from accelerate import Accelerator
+
+    cfg = DiffusionPPOConfig(n_steps=8, batch_size=16, update_epochs=2)
+    agent = load_agent(pretrained, cfg, seed=3).eval()
+    collector = Collector(CrowdNavVectorEnv(4), agent, None, torch.Generator().manual_seed(0))
+    collector.reset(500_000_000)
+    ro = collector.collect(agent, cfg.n_steps)
+    rng = np.random.default_rng(0)
+    first = torch.as_tensor(np.random.default_rng(0).permutation(32)[:16])
+    before = agent(*Columns.of(ro, False, torch.device("cpu"))[first]).logp.detach()  # pre-update weights
+    optimizers = {name: torch.optim.AdamW(p, lr=1e-2) for name, p in agent.param_groups().items()}
+    spy = _Recording(agent)
+    stats = update(spy, agent, ro, cfg, optimizers, rng, Accelerator(cpu=True), train_actor=True)
+    assert len(spy.seen) == 4 and stats["update_epochs"] == 2
+    assert torch.equal(spy.seen[0], before)  # bitwise: ratio exactly 1
+    assert any(not torch.equal(s, before) for s in spy.seen[1:])  # later minibatches see updated weights
 
 
 def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp_path):
@@ -170,10 +189,14 @@ def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp
     assert policy.config.ft_denoising_steps == 10 and not policy.config.use_ema
     base = PDPOPolicy.from_pretrained(pretrained)
     # frozen copy = the pretrained nets; trained nets moved; the value head is saved
-    for a, b in zip(policy.base["denoiser"].parameters(), base.denoiser.parameters(), strict=True):
+    for a, b in zip(policy.base.denoiser.parameters(), base.actor.denoiser.parameters(), strict=True):
         torch.testing.assert_close(a, b)
-    assert any(not torch.equal(a, b) for a, b in zip(policy.denoiser.parameters(), base.denoiser.parameters(), strict=True))
-    assert any(not torch.equal(a, b) for a, b in zip(policy.value.parameters(), base.value.parameters(), strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(policy.actor.denoiser.parameters(), base.actor.denoiser.parameters(), strict=True))
+    # the critic is saved beside the policy, trained away from the fresh one a BC checkpoint gets
+    assert (path / CRITIC_FILE).exists() and not any(k.startswith("value.") for k in policy.state_dict())
+    ppo = DiffusionPPOConfig()
+    trained, fresh = load_agent(path, ppo, seed=3).critic, load_agent(pretrained, ppo, seed=3).critic
+    assert any(not torch.equal(a, b) for a, b in zip(trained.parameters(), fresh.parameters(), strict=True))
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", f"--output_dir={tmp_path / 'eval'}"])
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
 
@@ -243,3 +266,31 @@ def test_finetune_configs_parse_and_validate(path):
     cfg.validate()
     assert cfg.ppo.batch_size == 500 and cfg.ppo.ft_denoising_steps == 10 and cfg.ppo.update_epochs == 5
     assert cfg.env.task in path.read_text() and cfg.policy.path is not None
+
+
+def test_checkpoints_from_before_the_actor_critic_split_still_load(tmp_path):
+    """Legacy layout: actor at encoder.* / denoiser.*, value head at value.* in model.safetensors."""
+    from safetensors.torch import load_file, save_file
+
+    cfg = small_pdpo_config(ft_denoising_steps=4, use_ema=False)
+    torch.manual_seed(2)
+    policy = PDPOPolicy(cfg)
+    critic = ValueHead(cfg.latent_dim, cfg.value_mlp_dims)
+    policy.save_pretrained(tmp_path)
+    weights = load_file(str(tmp_path / "model.safetensors"))
+    legacy = {k.removeprefix("actor."): v for k, v in weights.items()}
+    legacy.update({f"value.{k}": v for k, v in critic.state_dict().items()})
+    save_file(legacy, str(tmp_path / "model.safetensors"))
+    loaded = PDPOPolicy.from_pretrained(tmp_path)
+    for k, v in policy.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v), k
+    from lerobot_crowdnav.rl.dppo import _saved_critic
+
+    restored = ValueHead(cfg.latent_dim, cfg.value_mlp_dims)
+    restored.load_state_dict(_saved_critic(tmp_path))
+    for a, b in zip(restored.parameters(), critic.parameters(), strict=True):
+        assert torch.equal(a, b)
+    del legacy["actor.encoder.latent_mlp.0.bias".removeprefix("actor.")]  # a missing weight is an error
+    save_file(legacy, str(tmp_path / "model.safetensors"))
+    with pytest.raises(RuntimeError, match="Missing key"):
+        PDPOPolicy.from_pretrained(tmp_path)

@@ -44,9 +44,13 @@ def dataset_root(tmp_path_factory):
 
 
 def test_parameter_counts_match_the_paper_within_10_percent():
-    counts = PDPOPolicy(make_config()).parameter_counts()
-    assert abs(counts["actor"] / 0.848e6 - 1) < 0.10, counts
-    assert abs(counts["critic"] / 0.201e6 - 1) < 0.10, counts
+    from lerobot_crowdnav.rl.dppo import ValueHead
+
+    cfg = make_config()
+    actor = PDPOPolicy(cfg).parameter_counts()["actor"]
+    critic = sum(p.numel() for p in ValueHead(cfg.latent_dim, cfg.value_mlp_dims).parameters())
+    assert abs(actor / 0.848e6 - 1) < 0.10, actor
+    assert abs(critic / 0.201e6 - 1) < 0.10, critic
 
 
 def test_config_round_trip_through_draccus(tmp_path):
@@ -97,7 +101,7 @@ def test_forward_backward_on_real_data_ignores_padding(dataset_root):
     batch["action_is_pad"][:, 3:] = True
     torch.manual_seed(1)
     a, _ = policy.forward(batch)
-    original = policy.denoiser.forward
+    original = policy.actor.denoiser.forward
 
     def corrupt(steps):
         def forward(x, k, z):
@@ -106,13 +110,13 @@ def test_forward_backward_on_real_data_ignores_padding(dataset_root):
             return out
         return forward
 
-    policy.denoiser.forward = corrupt(slice(3, None))
+    policy.actor.denoiser.forward = corrupt(slice(3, None))
     torch.manual_seed(1)
     b, _ = policy.forward(batch)
-    policy.denoiser.forward = corrupt(slice(0, 1))
+    policy.actor.denoiser.forward = corrupt(slice(0, 1))
     torch.manual_seed(1)
     c, _ = policy.forward(batch)
-    policy.denoiser.forward = original
+    policy.actor.denoiser.forward = original
     assert torch.equal(a, b) and c > 1e6
 
 
@@ -168,7 +172,7 @@ def test_save_load_equality_including_ema(dataset_root, tmp_path):
         loss.backward()
         opt.step()
         policy.update()
-    assert not torch.equal(policy.ema["denoiser"].net[0].weight, policy.denoiser.net[0].weight)
+    assert not torch.equal(policy.ema.denoiser.net[0].weight, policy.actor.denoiser.net[0].weight)
     policy.save_pretrained(tmp_path)
     assert not list(tmp_path.glob("*.bin")) and not list(tmp_path.glob("*.pt"))  # safetensors only
     loaded = PDPOPolicy.from_pretrained(tmp_path).eval()
@@ -217,8 +221,8 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
     from lerobot_crowdnav.eval import LearnedPolicy
 
     with_ema, raw = LearnedPolicy(ckpt, "cpu", 269), LearnedPolicy(ckpt, "cpu", 269, use_ema=False)  # --policy.use_ema
-    assert with_ema.policy._sampling_nets()[0] is with_ema.policy.ema["encoder"]
-    assert raw.policy._sampling_nets()[0] is raw.policy.encoder
+    assert with_ema.policy.sampling_actor() is with_ema.policy.ema
+    assert raw.policy.sampling_actor() is raw.policy.actor
     with pytest.raises(SystemExit, match="no config.json"):
         eval_main([f"--policy.path={tmp_path}", f"--output_dir={tmp_path / 'bad'}"])
     with pytest.raises(SystemExit, match="observation.state of shape"):

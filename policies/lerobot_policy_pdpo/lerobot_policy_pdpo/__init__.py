@@ -1,7 +1,7 @@
 """PDPO as a lerobot policy plugin: ``--policy.type=pdpo``.
 
-``configuration_pdpo`` (every hyperparameter), ``modeling_pdpo`` (the crowd encoder, the diffusion
-actor, the value head), ``processor_pdpo`` (normalization in, denormalization out).
+``configuration_pdpo`` (every hyperparameter), ``modeling_pdpo`` (the diffusion actor:
+crowd encoder + denoiser + reverse process, and the lerobot wrapper), ``processor_pdpo`` (normalization in, denormalization out).
 """
 
 from .configuration_pdpo import PDPOConfig

@@ -9,6 +9,8 @@ from lerobot.configs.types import FeatureType, NormalizationMode
 from lerobot.optim.optimizers import AdamWConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from lerobot_crowdnav.layout import obs_dim
+
 
 @PreTrainedConfig.register_subclass("pdpo")
 @dataclass
@@ -60,15 +62,16 @@ class PDPOConfig(PreTrainedConfig):
     denoised_clip_value: float = 1.0
     # Lower bound of the sampling std of select_action / predict_action_chunk (0: the DDPM
     # posterior std, no noise at the last step; DPPO's deterministic evaluation). Fine-tuning
-    # rollouts explore with their own floor (lerobot_crowdnav.finetune: 0.1, every step).
+    # rollouts explore with their own floor (--ppo.min_sampling_denoising_std: 0.1, every step).
     min_sampling_denoising_std: float = 0.0
     # Denoising steps fine-tuned by diffusion PPO (DPPO's K'; 0 = a BC policy). When > 0 the
     # policy holds a frozen copy of the pretrained encoder and denoiser (``base``) that runs the
     # first K - K' steps of the chain; the trained ones run the last K'.
     ft_denoising_steps: int = 0
 
-    # -- critic (used by fine-tuning) ----------------------------------------------------------
-    # V(z): MLP [256, 256, 256], Mish (paper).
+    # -- critic size, read by diffusion PPO (lerobot_crowdnav.rl.dppo) ------------------------------
+    # The policy builds no critic; the field stays so that every saved config.json still loads
+    # (draccus rejects unknown fields). V(z): MLP [256, 256, 256], Mish (paper).
     value_mlp_dims: tuple[int, ...] = (256, 256, 256)
 
     # -- training (paper: AdamW, lr 1e-3, weight decay 1e-6, batch 128) -------------------------
@@ -100,7 +103,7 @@ class PDPOConfig(PreTrainedConfig):
 
     @property
     def state_dim(self) -> int:
-        return 9 + self.num_humans * 2 * (self.prediction_steps + 1) + self.num_humans
+        return obs_dim(self.num_humans, self.prediction_steps)
 
     @property
     def latent_dim(self) -> int:

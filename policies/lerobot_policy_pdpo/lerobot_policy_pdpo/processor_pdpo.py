@@ -22,8 +22,9 @@ import torch
 from lerobot.processor import PolicyAction, PolicyProcessorPipeline, make_default_pre_post_processors
 from lerobot.utils.constants import OBS_STATE
 
+from lerobot_crowdnav.layout import humans_slice
+
 from .configuration_pdpo import PDPOConfig
-from .modeling_pdpo import ROBOT_DIM
 
 
 def _np(x) -> np.ndarray:
@@ -34,7 +35,8 @@ def crowd_state_stats(state_stats: dict, config: PDPOConfig) -> dict[str, np.nda
     """``observation.state`` statistics with the human rows' mean/std computed over visible rows
     only and the mask columns mapped to mean 0, std 1 (identity)."""
     n, row = config.num_humans, 2 * (config.prediction_steps + 1)
-    h0, h1 = ROBOT_DIM, ROBOT_DIM + n * row
+    humans = humans_slice(n, config.prediction_steps)
+    h0, h1 = humans.start, humans.stop
     stats = {k: _np(v).copy() for k, v in state_stats.items()}
     mean, std = stats["mean"], stats["std"]
     if mean.shape != (h1 + n,):

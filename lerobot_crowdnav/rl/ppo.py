@@ -1,7 +1,9 @@
-"""Diffusion-PPO arithmetic (DPPO, Ren et al. 2025), independent of environments and networks.
+"""PPO arithmetic (CleanRL's PPO, with DPPO's per-denoising-step extensions), independent of
+environments and networks.
 
-Conventions: arrays ``(T, B)`` are time-major rollouts of B envs; ``K'`` = fine-tuned denoising
-steps; denoising index ``i = 0`` is the noisiest fine-tuned step, ``i = K'-1`` the final one.
+Conventions: arrays ``(T, B)`` are time-major rollouts of B envs. A decision (one env step's
+action) may be scored as ``n`` parts: n = 1 for a Gaussian policy, n = K' fine-tuned denoising
+steps for a diffusion policy (index ``i = 0`` the noisiest, ``i = K'-1`` the final one).
 """
 
 from __future__ import annotations
@@ -80,11 +82,12 @@ def denoising_discounts(ft_steps: int, gamma_denoising: float) -> np.ndarray:
 
 def ppo_losses(new_logp: Tensor, old_logp: Tensor, advantages: Tensor, clip: Tensor, discount: Tensor,
                values: Tensor, returns: Tensor) -> dict[str, Tensor]:
-    """Diffusion-PPO losses for a minibatch of env steps ``(M,)`` with their K' transitions
-    ``(M, K')``: clipped surrogate with a per-step clip and denoising discount on per-minibatch
-    normalized advantages, and ``0.5 (V - return)^2``. Also the diagnostics (no gradient)."""
+    """PPO losses for a minibatch of env steps ``(M,)`` whose decisions are scored as n parts
+    ``(M, n)``: clipped surrogate with a per-part clip ``(n,)`` and advantage weight ``(n,)``
+    (DPPO's denoising discount; 1 for n = 1) on per-minibatch normalized advantages, and
+    ``0.5 (V - return)^2``. Also the diagnostics (no gradient)."""
     adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    adv = adv[:, None] * discount[None]  # (M, K')
+    adv = adv[:, None] * discount[None]  # (M, n)
     logratio = new_logp - old_logp
     ratio = logratio.exp()
     policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip)).mean()

@@ -37,9 +37,17 @@ copies: beyond the shared page cache of the memory-mapped file it costs one byte
 and a few numpy headers per Arrow chunk, in every process. It is rebuilt when the reader's
 ``hf_dataset`` (or its table, or ``meta.episodes``) is replaced.
 
-The project's lerobot plugin (``lerobot_env_crowdnav`` -> ``lerobot_crowdnav.lerobot_env``) calls
-:func:`install`, so every lerobot CLI gets it. It only installs on lerobot 0.6.1 whose methods have
-the expected signatures (otherwise nothing is patched); ``LEROBOT_CROWDNAV_FAST_LOADER=0`` opts out.
+Where it is active: opt-in, where our datasets are read for training. The PDPO policy plugin
+calls :func:`install` from ``PDPOPolicy.get_optim_params``, which lerobot-train calls (fresh or
+resumed run) before it builds its DataLoader, so the stock ``lerobot-train --policy.type=pdpo``
+gets it with no flag; other policies, other CLIs and importing the env plugin leave lerobot as it
+is. Any other script opts in by calling :func:`install`. It logs one INFO line when it becomes
+active, only installs on lerobot 0.6.1 whose methods have the expected signatures (otherwise
+nothing is patched), and ``LEROBOT_CROWDNAV_FAST_LOADER=0`` opts out.
+
+A candidate upstream fix: the same column cache inside lerobot's ``DatasetReader`` (or a
+``Features`` copy that datasets does not deep-copy per column access) would make this module
+unnecessary; docs/policy.md has the measurements to file with it.
 """
 
 from __future__ import annotations
@@ -370,6 +378,7 @@ def install() -> bool:
     for name, (fast, _) in _PATCHES.items():
         setattr(DatasetReader, name, fast)
     DatasetReader.__getstate__ = _reader_getstate
+    logger.info("fast LeRobotDataset reads active (lerobot_crowdnav.data.fast_loader; %s=0 turns them off)", ENV_VAR)
     return True
 
 

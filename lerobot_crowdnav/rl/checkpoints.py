@@ -1,0 +1,82 @@
+"""Fine-tuning checkpoints on disk and the rules for resuming from them.
+
+    checkpoints/<env steps>/pretrained_model   the policy (the agent's ``save``) + finetune_config.json
+    checkpoints/<env steps>/training_state     optimizers.pt (optimizers, counters), and per process
+                                               env_rank<r>.npz, rng_rank<r>.json
+    checkpoints/last -> <latest>;  checkpoints/best/pretrained_model (+ best.json)
+
+Every checkpoint is written under a hidden staging name and renamed when complete, so an
+interrupted save never leaves a half checkpoint behind ``last`` or ``best``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+# Settings that must not change when a run is resumed.
+RESUME_KEYS = ("env", "num_envs", "ppo", "seed", "env_seed")
+
+
+def resume_conflicts(saved: dict, now: dict, world_size: int) -> list[str]:
+    """The settings a resumed run changed (``saved``: the checkpoint's finetune_config.json)."""
+    changed = [k for k in RESUME_KEYS if saved.get(k) != now.get(k)]
+    if saved.get("world_size", 1) != world_size:
+        changed.append(f"number of processes ({saved.get('world_size', 1)} -> {world_size})")
+    return changed
+
+
+class Checkpoints:
+    """Writes and reads the checkpoints of one run; the main process writes the shared parts,
+    every process its own env and RNG state."""
+
+    def __init__(self, root: Path, accelerator, name_width: int):
+        self.root, self.acc, self.width = Path(root), accelerator, name_width
+        self.rank = accelerator.process_index
+
+    @property
+    def last(self) -> Path:
+        return self.root / "last"
+
+    def save(self, env_steps: int, save_policy: Callable[[Path], None], shared: dict,
+             save_rank_state: Callable[[Path, int], None]) -> Path:
+        """``shared`` goes to training_state/optimizers.pt; ``save_rank_state(dir, rank)`` writes
+        one process's own state."""
+        name = f"{env_steps:0{self.width}d}"
+        staging = self.root / f".{name}.tmp"
+        state = staging / "training_state"
+        if self.acc.is_main_process:
+            shutil.rmtree(staging, ignore_errors=True)
+            state.mkdir(parents=True)
+            save_policy(staging / "pretrained_model")
+            torch.save(shared, state / "optimizers.pt")
+        self.acc.wait_for_everyone()
+        save_rank_state(state, self.rank)
+        self.acc.wait_for_everyone()
+        final = self.root / name
+        if self.acc.is_main_process:
+            shutil.rmtree(final, ignore_errors=True)
+            staging.replace(final)
+            link = self.root / ".last.tmp"
+            link.unlink(missing_ok=True)
+            link.symlink_to(name)
+            link.replace(self.last)
+        self.acc.wait_for_everyone()
+        return final
+
+    def save_best(self, save_policy: Callable[[Path], None], info: dict) -> None:
+        """Main process only: ``best/pretrained_model`` and ``best/best.json`` (``info``)."""
+        staging = self.root / ".best.tmp"
+        shutil.rmtree(staging, ignore_errors=True)
+        save_policy(staging / "pretrained_model")
+        (staging / "best.json").write_text(json.dumps(info, indent=2))
+        best = self.root / "best"
+        shutil.rmtree(best, ignore_errors=True)
+        staging.replace(best)
+
+    def load_shared(self) -> dict:
+        return torch.load(self.last / "training_state" / "optimizers.pt", map_location=self.acc.device, weights_only=True)

@@ -1,0 +1,104 @@
+"""PPO settings: ``PPOConfig`` for any actor-critic, ``DiffusionPPOConfig`` adds what only a
+diffusion policy has (DPPO). Both are the ``--ppo.*`` flags of lerobot-crowdnav-finetune."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .ppo import clip_coefficients, denoising_discounts
+
+
+@dataclass
+class PPOConfig:
+    """PPO. Defaults: the PDPO paper's table; DPPO's values where it is silent."""
+
+    # Steps each env takes per iteration (rollout length).
+    n_steps: int = 64
+    # Env steps per minibatch (a recurrent policy gets batch_size // n_steps whole env sequences).
+    # A diffusion decision brings its K' denoising transitions, so a PDPO minibatch holds
+    # batch_size * K' (env step, denoising step) pairs (DPPO >= v0.6 counts pairs: 5,000 here).
+    batch_size: int = 500
+    # Passes over the iteration's data.
+    update_epochs: int = 5
+    actor_lr: float = 1e-4
+    critic_lr: float = 1e-3
+    # AdamW weight decay of both optimizers (DPPO: 0).
+    weight_decay: float = 0.0
+    # Discount and GAE lambda on environment steps.
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    # PPO clip of the probability ratio (of the final denoising step for a diffusion policy).
+    clip_ploss_coef: float = 0.01
+    # Value-loss coefficient (the value loss is 0.5 (V - return)^2).
+    vf_coef: float = 0.5
+    # Stop the iteration's remaining updates once the approximate KL exceeds this (0: never).
+    target_kl: float = 1.0
+    # Scale rewards by a running std of the discounted return, clipped to +-reward_clip.
+    reward_scale_running: bool = True
+    reward_clip: float = 10.0
+    # First iterations train only the critic (it starts fresh).
+    n_critic_warmup_itr: int = 2
+    # Gradient-norm clip of each optimizer's parameters (0: none, DPPO's default).
+    max_grad_norm: float = 0.0
+
+    def validate(self) -> None:
+        for name in ("n_steps", "batch_size", "update_epochs"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--ppo.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("actor_lr", "critic_lr", "clip_ploss_coef"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"--ppo.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"--ppo.{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.target_kl < 0 or self.max_grad_norm < 0 or self.n_critic_warmup_itr < 0:
+            raise ValueError("--ppo.target_kl, --ppo.max_grad_norm and --ppo.n_critic_warmup_itr must be >= 0")
+
+    def clip_per_part(self) -> np.ndarray:
+        """PPO clip of each scored part of a decision, ``(n,)``: one part here."""
+        return np.array([self.clip_ploss_coef])
+
+    def advantage_weights(self) -> np.ndarray:
+        """Weight of the advantage for each scored part of a decision, ``(n,)``."""
+        return np.ones(1)
+
+
+@dataclass
+class DiffusionPPOConfig(PPOConfig):
+    """Diffusion PPO (DPPO): a decision is a sampled chunk, scored as its K' fine-tuned
+    denoising transitions, each with its own clip and advantage discount."""
+
+    # Denoising steps fine-tuned (K'): the last K' of the K-step chain; a frozen copy of the
+    # pretrained nets runs the first K - K'.
+    ft_denoising_steps: int = 10
+    # Advantage of denoising step i is multiplied by gamma_denoising ** (K'-1-i).
+    gamma_denoising: float = 0.99
+    # Per-denoising-step PPO clip: clip_ploss_coef_base at the noisiest fine-tuned step up to
+    # clip_ploss_coef at the final one, exponential with rate clip_ploss_coef_rate.
+    clip_ploss_coef_base: float = 0.001
+    clip_ploss_coef_rate: float = 3.0
+    # Std floor of the rollout's denoising steps (exploration noise at every step, the last included).
+    min_sampling_denoising_std: float = 0.1
+    # Std floor in the transitions' log-probabilities.
+    min_logprob_denoising_std: float = 0.1
+
+    def validate(self) -> None:
+        super().validate()
+        if self.ft_denoising_steps < 1:
+            raise ValueError(f"--ppo.ft_denoising_steps must be >= 1, got {self.ft_denoising_steps}")
+        for name in ("min_sampling_denoising_std", "min_logprob_denoising_std"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"--ppo.{name} must be > 0, got {getattr(self, name)}")
+        if not 0 < self.gamma_denoising <= 1:
+            raise ValueError(f"--ppo.gamma_denoising must be in (0, 1], got {self.gamma_denoising}")
+        if not 0 < self.clip_ploss_coef_base <= self.clip_ploss_coef:
+            raise ValueError("need 0 < --ppo.clip_ploss_coef_base <= --ppo.clip_ploss_coef")
+
+    def clip_per_part(self) -> np.ndarray:
+        return clip_coefficients(self.ft_denoising_steps, self.clip_ploss_coef_base, self.clip_ploss_coef,
+                                 self.clip_ploss_coef_rate)
+
+    def advantage_weights(self) -> np.ndarray:
+        return denoising_discounts(self.ft_denoising_steps, self.gamma_denoising)

@@ -1,0 +1,171 @@
+"""PDPO as an actor-critic for the PPO loop (DPPO's ``agent/`` side of the model/agent split):
+the critic, the chain scoring, and reading/writing fine-tuning checkpoints.
+
+A decision is one sampled action chunk, of which the env executes the first action (receding
+horizon); it is stored as its state and chain and scored as its K' fine-tuned denoising
+transitions:
+
+    stored["state"]  (B, 269)            normalized observation.state (the policy's preprocessor)
+    stored["chain"]  (B, K'+1, H, 2)     x_{K'} .. x_0 of the sampled chunk, normalized action units
+    Scores.logp      (L, M, K')          log-probabilities of the K' transitions
+    Scores.value     (L, M)              V(z), z the trained encoder's latent through a stop-gradient
+
+Fine-tuning checkpoints are lerobot ``pretrained_model`` directories of the fine-tuned policy
+(``ft_denoising_steps`` = K', frozen ``base`` included) with the critic beside it in
+``critic.safetensors`` (lerobot ignores the file). Checkpoints written before the actor/critic
+split hold the critic as ``value.*`` in ``model.safetensors``; it is read from there.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import torch
+from lerobot_policy_pdpo.modeling_pdpo import DiffusionActor, PDPOPolicy, mlp
+from safetensors.torch import load_file, save_file
+from torch import Tensor, nn
+
+from ..config import CrowdSimConfig
+from .agent import Scores, Step
+from .config import DiffusionPPOConfig
+
+OBS = "observation.state"
+CRITIC_FILE = "critic.safetensors"
+
+
+class ValueHead(nn.Module):
+    """V(z): MLP ``value_mlp_dims`` ([256, 256, 256] in the paper) with Mish."""
+
+    def __init__(self, latent_dim: int, dims: tuple[int, ...]):
+        super().__init__()
+        self.net = mlp([latent_dim, *dims, 1], activation=nn.Mish)
+
+    def forward(self, z: Tensor) -> Tensor:
+        return self.net(z).squeeze(-1)
+
+
+def transition_log_prob(actor: DiffusionActor, z: Tensor, chain: Tensor, min_std: float) -> Tensor:
+    """Log-probabilities ``(B, K')`` of the transitions of chains ``(B, K'+1, H, 2)`` that ran the
+    last K' reverse steps, under ``actor`` given the latent ``z (B, Z)``.
+
+    Each transition x_k -> x_{k-1} is Gaussian with the network's mean and the posterior std
+    floored at ``min_std``; the per-element log-density is clamped to [-5, 2] and averaged over
+    the chunk (DPPO). Index i = 0 is the noisiest step (k = K'-1), i = K'-1 the final one (k = 0).
+    All K' steps run as one batched denoiser call."""
+    b, ft = chain.shape[0], chain.shape[1] - 1
+    k = torch.arange(ft - 1, -1, -1, device=chain.device).repeat(b)  # (B*K',)
+    x_k = chain[:, :-1].reshape(b * ft, *chain.shape[2:])
+    x_prev = chain[:, 1:].reshape(b * ft, *chain.shape[2:])
+    mean, std = actor.p_mean_std(x_k, k, z.repeat_interleave(ft, dim=0))
+    logp = torch.distributions.Normal(mean, std.clamp(min=min_std)).log_prob(x_prev).clamp(-5, 2).mean(dim=(-2, -1))
+    return logp.view(b, ft)
+
+
+class DiffusionPPOAgent(nn.Module):
+    """The actor-critic protocol (rl/agent.py) for a fine-tuning PDPO policy. Feed-forward."""
+
+    recurrent = False
+
+    def __init__(self, policy: PDPOPolicy, critic: ValueHead, pre, post, cfg: DiffusionPPOConfig):
+        super().__init__()
+        self.policy, self.critic = policy, critic
+        self.pre, self.post, self.cfg = pre, post, cfg
+
+    def initial_memory(self, num_envs: int) -> None:
+        return None
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"actor": list(self.policy.actor.parameters()), "critic": list(self.critic.parameters())}
+
+    def _normalize(self, obs: Tensor) -> Tensor:
+        return self.pre({OBS: obs})[OBS].to(self.critic.net[0].weight.device)
+
+    @torch.no_grad()
+    def act(self, obs: Tensor, memory: None, explore: bool, generator: torch.Generator) -> Step:
+        """Exploring: noise at every denoising step, floored at ``min_sampling_denoising_std``;
+        otherwise DPPO's deterministic sampling. The action is the chunk's first, in m/s."""
+        state = self._normalize(obs)
+        chain = self.policy.sample_chain(state, generator, self.cfg.min_sampling_denoising_std if explore else None)
+        action = self.post(chain[:, -1, 0].clamp(-1, 1)).cpu()  # (B, 2)
+        return Step(action, {"state": state, "chain": chain}, None)
+
+    def forward(self, samples: dict[str, Tensor], memory: None, episode_start: Tensor) -> Scores:
+        L, M = samples["state"].shape[:2]
+        state, chain = samples["state"].flatten(0, 1), samples["chain"].flatten(0, 1)
+        z = self.policy.actor.encoder(state)
+        logp = transition_log_prob(self.policy.actor, z, chain, self.cfg.min_logprob_denoising_std)
+        # The critic reads the shared encoder's latent through a stop-gradient, so a fresh critic
+        # cannot overwrite the pretrained features.
+        return Scores(logp.view(L, M, -1), self.critic(z.detach()).view(L, M), None)
+
+    @torch.no_grad()
+    def value(self, obs: Tensor, memory: None) -> Tensor:
+        return self.critic(self.policy.actor.encoder(self._normalize(obs)))
+
+    def save(self, path: Path) -> None:
+        """A lerobot pretrained_model directory plus ``critic.safetensors``."""
+        self.policy.save_pretrained(path)
+        self.pre.save_pretrained(path)
+        self.post.save_pretrained(path)
+        save_file({k: v.contiguous() for k, v in self.critic.state_dict().items()}, str(Path(path) / CRITIC_FILE))
+
+
+def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAgent:
+    """The agent to fine-tune, on cpu. A BC checkpoint becomes a fine-tuning policy whose trained
+    and frozen actors both start from its sampling (EMA) weights, with a fresh critic; a
+    fine-tuned checkpoint is taken as it is, critic included."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    path = Path(path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
+    kind = json.loads((path / "config.json").read_text()).get("type")
+    if kind != "pdpo":
+        raise ValueError(f"--policy.path={path} holds a {kind!r} policy; diffusion PPO fine-tunes PDPO ('pdpo')")
+    register_third_party_plugins()
+    pcfg = PreTrainedConfig.from_pretrained(path)
+    pcfg.device = "cpu"
+    ft = cfg.ft_denoising_steps
+    if pcfg.ft_denoising_steps and pcfg.ft_denoising_steps != ft:
+        raise ValueError(f"{path} was fine-tuned with ft_denoising_steps={pcfg.ft_denoising_steps}, not {ft}")
+    if ft > pcfg.num_diffusion_steps:
+        raise ValueError(f"--ppo.ft_denoising_steps={ft} exceeds the policy's {pcfg.num_diffusion_steps} steps")
+    loaded = PDPOPolicy.from_pretrained(path, config=pcfg)
+    if pcfg.ft_denoising_steps:
+        policy = loaded
+        critic = ValueHead(pcfg.latent_dim, pcfg.value_mlp_dims)
+        critic.load_state_dict(_saved_critic(path))
+    else:
+        ft_cfg = copy.deepcopy(pcfg)
+        ft_cfg.use_ema, ft_cfg.ft_denoising_steps = False, ft
+        policy = PDPOPolicy(ft_cfg)
+        weights = loaded.sampling_actor().state_dict()
+        policy.actor.load_state_dict(weights)
+        policy.base.load_state_dict(weights)
+        torch.manual_seed(seed)  # the fresh critic
+        critic = ValueHead(pcfg.latent_dim, pcfg.value_mlp_dims)
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
+    return DiffusionPPOAgent(policy, critic, pre, post, cfg)
+
+
+def _saved_critic(path: Path) -> dict[str, Tensor]:
+    if (path / CRITIC_FILE).exists():
+        return load_file(str(path / CRITIC_FILE))
+    legacy = load_file(str(path / "model.safetensors"))  # written before the actor/critic split
+    return {k.removeprefix("value."): v for k, v in legacy.items() if k.startswith("value.")}
+
+
+def check_compatible(policy: PDPOPolicy, sim_cfg: CrowdSimConfig) -> None:
+    cfg = policy.config
+    if (cfg.num_humans, cfg.prediction_steps) != (sim_cfg.num_humans, sim_cfg.prediction_steps) \
+            or cfg.state_dim != sim_cfg.obs_dim:
+        raise ValueError(f"the policy reads {cfg.state_dim}-float observations ({cfg.num_humans} humans, "
+                         f"{cfg.prediction_steps} prediction steps); the env gives {sim_cfg.obs_dim} "
+                         f"({sim_cfg.num_humans} humans, {sim_cfg.prediction_steps} prediction steps)")
+    if cfg.n_action_steps != 1:
+        raise ValueError("diffusion PPO executes the first action of each chunk (receding horizon): "
+                         f"the policy has n_action_steps={cfg.n_action_steps}")

@@ -1,0 +1,57 @@
+"""What a fine-tuning run reports, on the main process: progress.jsonl (a record per iteration),
+TensorBoard scalars, optionally W&B, and training_curves.png at the end."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from ..eval import json_safe
+
+
+class RunLog:
+    def __init__(self, out: Path, enabled: bool, iteration: int, resume: bool, wandb_cfg, config: dict):
+        """``iteration``: the one the run starts from; a resumed run keeps the history up to it."""
+        self.enabled, self.out = enabled, Path(out)
+        self.records: list[dict] = []
+        self.writer = self.wandb = None
+        if not enabled:
+            return
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.progress = self.out / "progress.jsonl"
+        if self.progress.exists():
+            self.records = [r for r in map(json.loads, self.progress.read_text().splitlines()) if r["iteration"] <= iteration]
+        self.progress.write_text("".join(json.dumps(r) + "\n" for r in self.records))
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(self.out / "tensorboard", purge_step=iteration + 1 if resume else None)
+        if wandb_cfg.enable:
+            import wandb
+
+            self.wandb = wandb.init(project=wandb_cfg.project, mode=wandb_cfg.mode, dir=str(self.out), config=config,
+                                    name=self.out.name, id=self.out.name.replace("/", "_"), resume="allow")
+
+    def log(self, record: dict) -> None:
+        """``record`` holds ``iteration``, ``env_steps`` and scalars (numbers; NaN kept as null)."""
+        if not self.enabled:
+            return
+        self.records.append(record)
+        with self.progress.open("a") as f:
+            f.write(json.dumps(json_safe(record), allow_nan=False) + "\n")
+        for k, val in record.items():
+            if isinstance(val, (int, float)) and k not in ("iteration", "env_steps") and math.isfinite(val):
+                self.writer.add_scalar(k, val, record["env_steps"])
+        self.writer.flush()
+        if self.wandb is not None:
+            self.wandb.log({k: v for k, v in record.items() if isinstance(v, (int, float))}, step=record["env_steps"])
+
+    def close(self) -> None:
+        if not self.enabled:
+            return
+        self.writer.close()
+        if self.wandb is not None:
+            self.wandb.finish()
+        from ..plots import plot_finetune_curves
+
+        plot_finetune_curves({self.out.name: self.records}, self.out / "training_curves.png")

@@ -1,0 +1,45 @@
+"""Validation of an actor-critic on the validation seeds (deterministic actions), and the
+training episodes' statistics summed over processes."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..eval import run_episodes
+from ..metrics import compute_metrics
+from .loop import restart_memory
+
+EVENTS = ("success", "human_collision", "wall_collision", "timeout")
+
+
+def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> dict[str, float]:
+    """The first ``n_episodes`` val seeds, one batched env, no exploration noise (fixed sampling
+    seed 0, so every validation of the same weights gives the same numbers)."""
+    generator = torch.Generator(device=device).manual_seed(0)
+    memory = agent.initial_memory(env.num_envs)
+
+    def actor(obs: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        nonlocal memory
+        memory = restart_memory(memory, fresh)
+        step = agent.act(torch.as_tensor(obs, dtype=torch.float32), memory, False, generator)
+        memory = step.memory
+        return step.action.numpy().astype(np.float64)
+
+    records = run_episodes(env, actor, "val", n_episodes, progress=False)
+    m = compute_metrics(records, dt)
+    return {"val/success_rate": m["sr"], "val/collision_rate": m["cr"], "val/timeout_rate": m["tr"],
+            "val/navigation_time": m["nt"], "val/episode_return": float(np.mean([r.episode_return for r in records]))}
+
+
+def episode_stats(episodes: list[dict], accelerator) -> dict[str, float]:
+    """Rates, mean return and length of the episodes that ended in an iteration, all processes."""
+    counts = torch.tensor([len(episodes), *[sum(e["event"] == ev for e in episodes) for ev in EVENTS],
+                           sum(e["return"] for e in episodes), sum(e["length"] for e in episodes)],
+                          dtype=torch.float64, device=accelerator.device)
+    c = accelerator.reduce(counts, reduction="sum").cpu().tolist()
+    if not c[0]:
+        return {"train/episodes": 0}
+    return {"train/episodes": int(c[0]), "train/success_rate": c[1] / c[0], "train/human_collision_rate": c[2] / c[0],
+            "train/wall_collision_rate": c[3] / c[0], "train/timeout_rate": c[4] / c[0],
+            "train/episode_return": c[5] / c[0], "train/episode_length": c[6] / c[0]}
