@@ -166,7 +166,8 @@ class Pipeline:
 
         root = self.dataset_root(task)
         info = root / "meta" / "info.json"
-        done = info.exists() and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
+        done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
+                and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos)
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
                 f"--repo_id={self.repo_id(task)}", f"--root={root}"]
         resume = ["--resume=true"] if root.exists() else []

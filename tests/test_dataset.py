@@ -150,8 +150,10 @@ def test_bad_input_is_refused_and_loses_nothing(dataset_root, tmp_path):
             collect_main([bad, f"--root={tmp_path / 'new'}"])
     with pytest.raises(SystemExit, match="different settings"):
         collect(dataset_root, "--resume=true", "--keep=success")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("not a dataset")
     with pytest.raises(SystemExit, match="no dataset to resume"):
-        collect(tmp_path / "nothing", "--resume=true")
+        collect(tmp_path / "other", "--resume=true")
 
 
 def test_hub_dir_round_trip_and_overwrite(dataset_root, tmp_path):
