@@ -42,6 +42,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from . import fault
 from .cli import run_cli
 from .config import SEED_SPLITS, CrowdSimConfig
 from .envs import CrowdNavVectorEnv
@@ -295,13 +296,13 @@ class Trainer:
         if self.device.type == "cpu":
             torch.set_num_threads(max(1, (os.cpu_count() or 1) // self.world))
         last = self.out / "checkpoints" / "last"
-        if cfg.resume:
-            if not last.exists():
-                raise FileNotFoundError(f"--resume=true: no checkpoint at {last}")
+        # --resume=true before the first checkpoint (killed early): start over from --policy.path.
+        self.resumed = cfg.resume and last.exists()
+        if self.resumed:
             self._check_resume_settings(last / "pretrained_model" / "finetune_config.json")
             source = last / "pretrained_model"
         else:
-            if self.out.exists() and any(self.out.iterdir()):
+            if not cfg.resume and self.out.exists() and any(self.out.iterdir()):
                 raise FileExistsError(f"{self.out} exists; pass --resume=true to continue its run or choose another --output_dir")
             if cfg.policy.path is None:
                 raise ValueError("--policy.path=<pretrained PDPO checkpoint> is required")
@@ -328,7 +329,7 @@ class Trainer:
                                      device=self.device)
         self.iteration, self.env_steps, self.best_val_sr = 0, 0, -1.0
         self.obs, _ = self.env.reset(seed=cfg.env_seed + self.rank * 10_000_000)
-        if cfg.resume:
+        if self.resumed:
             self._load_training_state(last / "training_state")
         self.val_env = CrowdNavVectorEnv(cfg.val.n_episodes, config=self.sim_cfg) if self.main else None
 
@@ -355,6 +356,7 @@ class Trainer:
             shutil.rmtree(staging, ignore_errors=True)
             state.mkdir(parents=True)
             self._save_policy(staging / "pretrained_model")
+            fault.point("finetune.checkpoint_writing")
             torch.save({"actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
                         "iteration": self.iteration, "env_steps": self.env_steps, "best_val_sr": self.best_val_sr},
                        state / "optimizers.pt")
@@ -365,13 +367,14 @@ class Trainer:
             "scaler": self.scaler.state_dict(), "obs_shape": list(self.obs.shape)}))
         acc.wait_for_everyone()
         final = root / name
-        if self.main:
-            shutil.rmtree(final, ignore_errors=True)
-            staging.replace(final)
+        if self.main:  # complete, then in place, then named last: a kill never leaves a partial last
+            fault.replace_dir(staging, final)
+            fault.point("finetune.checkpoint_renamed")
             link = root / ".last.tmp"
             link.unlink(missing_ok=True)
             link.symlink_to(name)
             link.replace(root / "last")
+            fault.point("finetune.last_linked")
         acc.wait_for_everyone()
         return final
 
@@ -535,12 +538,12 @@ class Trainer:
         records: list[dict] = []
         if self.main:
             self.out.mkdir(parents=True, exist_ok=True)
-            if progress.exists():  # keep the history up to the checkpoint being resumed
+            if self.resumed and progress.exists():  # keep the history up to the checkpoint being resumed
                 records = [r for r in map(json.loads, progress.read_text().splitlines()) if r["iteration"] <= self.iteration]
             progress.write_text("".join(json.dumps(r) + "\n" for r in records))
             from torch.utils.tensorboard import SummaryWriter
 
-            writer = SummaryWriter(self.out / "tensorboard", purge_step=self.iteration + 1 if cfg.resume else None)
+            writer = SummaryWriter(self.out / "tensorboard", purge_step=self.iteration + 1 if self.resumed else 0)
             if cfg.wandb.enable:
                 import wandb
 
@@ -615,9 +618,7 @@ class Trainer:
             shutil.rmtree(staging, ignore_errors=True)
             self._save_policy(staging / "pretrained_model")
             (staging / "best.json").write_text(json.dumps({"env_steps": self.env_steps, "iteration": self.iteration, **val}, indent=2))
-            best = self.out / "checkpoints" / "best"
-            shutil.rmtree(best, ignore_errors=True)
-            staging.replace(best)
+            fault.replace_dir(staging, self.out / "checkpoints" / "best")
 
 
 def finetune(cfg: FinetuneConfig) -> dict:

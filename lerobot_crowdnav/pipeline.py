@@ -219,7 +219,7 @@ class Pipeline:
                 f"--save_freq={max(c.ft_val_freq, c.ft_env_steps // 4)}", f"--seed={seed}", f"--output_dir={out}"]
         if self.device:
             argv.append(f"--device={self.device}")
-        resume = ["--resume=true"] if saved.exists() else []
+        resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
 
     @property
