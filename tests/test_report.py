@@ -92,6 +92,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
 
 
 def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path):
-    """Killed with a fine-tuning checkpoint renamed but not yet last (second fine-tuning stage);
-    the rerun completes and its tables equal the uninterrupted run's. More points: the script."""
-    assert fi.main_case(tmp_path, "finetune.checkpoint_renamed", 2, tiny_main) == []
+    """Killed writing the first fine-tuning's checkpoint (no last yet: the rerun restarts that stage
+    with --resume=true); the rerun completes and its tables equal the uninterrupted run's. More
+    points: scripts/fault_injection.py."""
+    assert fi.main_case(tmp_path, "finetune.checkpoint_writing", 1, tiny_main) == []
