@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from . import fault
 from .cli import run_cli
 from .config import SEED_SPLITS, CrowdSimConfig
 from .dataset import DemonstrationWriter, outcome_counts
@@ -43,7 +44,8 @@ class CollectConfig:
     # Episodes kept: success (successful episodes only; the default, measured to pretrain the
     # better policy, see docs/dataset.md) or all (every outcome).
     keep: str = "success"
-    # Complete an interrupted collection in root to --episodes, with the same seeds.
+    # Complete an interrupted collection in root to --episodes, with the same seeds (an empty or
+    # missing root: collect from scratch).
     resume: bool = False
     # Delete an existing root and collect from scratch.
     overwrite: bool = False
@@ -73,8 +75,8 @@ class CollectConfig:
         if root.exists() and any(root.iterdir()) and not (self.resume or self.overwrite):
             raise FileExistsError(f"{root} exists and is not empty: pass --resume=true to complete it, "
                                   "--overwrite=true to replace it, or another --root")
-        if self.resume and not (root / "meta/info.json").exists():
-            raise FileNotFoundError(f"--resume: no dataset to resume in {root}")
+        if self.resume and root.exists() and any(root.iterdir()) and not (root / "meta/info.json").exists():
+            raise FileNotFoundError(f"--resume: {root} holds no dataset to resume")
         self.env.resolve()
         return root
 
@@ -122,7 +124,7 @@ def collect(cfg: CollectConfig) -> dict:
     done = [row for block in writer.committed_blocks() for row in block]
     kept = len(done)
     next_seed = done[-1]["seed"] + 1 if done else cfg.seed
-    sim = CrowdSim(sim_cfg, min(cfg.batch_size, max(cfg.episodes - kept, 1)))
+    sim = CrowdSim(sim_cfg, min(cfg.batch_size, cfg.episodes))  # the same blocks as an uninterrupted run
     start = time.perf_counter()
     frames = 0
     bar = tqdm(total=cfg.episodes, initial=min(kept, cfg.episodes), unit="ep", desc="collect orca")
@@ -148,7 +150,8 @@ def collect(cfg: CollectConfig) -> dict:
     summary = {"root": str(root), "episodes": len(rows), "frames": writer.info.total_frames,
                "outcomes": counts, "first_seed": rows[0]["seed"], "last_seed": rows[-1]["seed"],
                "wall_time_s": elapsed}
-    dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary).save(root / "README.md")
+    # The card comes last and marks the dataset complete (the main job's test for it).
+    fault.write_text(root / "README.md", str(dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary)))
     summary["size_mb"] = _size_mb(root)
     if cfg.push_to_hub_dir:
         summary["hub_dir"] = str(push_dataset_to_dir(root, cfg.repo_id, cfg.push_to_hub_dir,

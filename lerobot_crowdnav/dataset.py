@@ -38,8 +38,9 @@ import pyarrow.parquet as pq
 from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.feature_utils import get_hf_features_from_features
-from lerobot.datasets.io_utils import load_info, load_stats, write_info, write_stats
+from lerobot.datasets.io_utils import load_info, write_info, write_stats
 
+from . import fault
 from .config import CrowdSimConfig
 from .layout import ROBOT_DIM
 from .sim import EVENT_NAMES
@@ -118,17 +119,29 @@ class DemonstrationWriter:
         self.root = Path(root)
         self.repo_id = repo_id
         self.features = features(sim_config)
-        if resume:
+        if resume and (self.root / "meta/info.json").exists():
             self._open_existing(collection)
         else:
-            meta = LeRobotDatasetMetadata.create(repo_id, FPS, self.features, root=self.root, use_videos=False)
-            meta.save_episode_tasks([TASK])
-            meta.info.total_tasks = len(meta.tasks)
-            self.info = meta.info
-            self.stats = None
-            self.n_files = 0
-            (self.root / COLLECTION_FILE).write_text(json.dumps(collection, indent=2))
+            self._create(collection)
         self.hf_features = get_hf_features_from_features(self.info.features)
+
+    def _create(self, collection: dict) -> None:
+        """Write the empty dataset (info with its one task, tasks, collection record) aside and
+        rename it into place: a kill leaves no root, or a root that resumes."""
+        staging = self.root.with_name(f".{self.root.name}.create.tmp")
+        shutil.rmtree(staging, ignore_errors=True)
+        meta = LeRobotDatasetMetadata.create(self.repo_id, FPS, self.features, root=staging, use_videos=False)
+        meta.save_episode_tasks([TASK])
+        meta.info.total_tasks = len(meta.tasks)
+        write_info(meta.info, staging)
+        (staging / COLLECTION_FILE).write_text(json.dumps(collection, indent=2))
+        fault.point("collect.create")
+        if self.root.exists():
+            self.root.rmdir()  # validated empty
+        staging.replace(self.root)
+        self.info = meta.info
+        self.episode_stats = []
+        self.n_files = 0
 
     def _open_existing(self, collection: dict) -> None:
         path = self.root / COLLECTION_FILE
@@ -145,25 +158,27 @@ class DemonstrationWriter:
         for tmp in sorted(self.root.rglob("*.tmp"), reverse=True):
             shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
         self.info = load_info(self.root)
-        self.n_files = len(self.committed_blocks())
+        files = self._committed_files()
+        self.n_files = len(files)
         for pattern in (DATA_FILE, EPISODES_FILE):
             for extra in sorted(self.root.glob(pattern.replace("{:03d}", "*")))[self.n_files:]:
                 extra.unlink()
-        self.stats = load_stats(self.root) if self.info.total_episodes else None
+        self.episode_stats = [stats for f in files for stats in _read_episode_stats(f)]
+
+    def _committed_files(self) -> list[Path]:
+        """The episodes files of the committed blocks, in order."""
+        out, total = [], 0
+        for f in sorted(self.root.glob(EPISODES_FILE.replace("{:03d}", "*"))):
+            total += pq.read_metadata(f).num_rows
+            if total > self.info.total_episodes:
+                break  # renamed but not recorded in info.json: not committed
+            out.append(f)
+        return out
 
     def committed_blocks(self) -> list[list[dict]]:
         """``{episode_index, seed, event, length}`` of each committed block's episodes."""
-        rows = []
-        files = sorted(self.root.glob(EPISODES_FILE.replace("{:03d}", "*")))
-        total = 0
-        for f in files:
-            table = pq.read_table(f, columns=["episode_index", "seed", "event", "length"])
-            part = table.to_pylist()
-            if total + len(part) > self.info.total_episodes:
-                break  # renamed but not recorded in info.json: not committed
-            rows.append(part)
-            total += len(part)
-        return rows
+        return [pq.read_table(f, columns=["episode_index", "seed", "event", "length"]).to_pylist()
+                for f in self._committed_files()]
 
     def append(self, episodes: list[dict]) -> None:
         """Commit a block of episodes; each is ``{seed, event, obs (T, D), action (T, 2),
@@ -220,7 +235,9 @@ class DemonstrationWriter:
         ep_rows["meta/episodes/file_index"] = np.full(len(episodes), file_idx)
         ep_table = pa.table(ep_rows)
 
-        stats = aggregate_stats(([self.stats] if self.stats else []) + ep_stats)
+        # Aggregated over all episodes in order, not block by block: the same bits whatever the
+        # block boundaries (an interrupted and resumed run ends with an uninterrupted run's stats).
+        stats = aggregate_stats(self.episode_stats + ep_stats)
         self.info.total_episodes += len(episodes)
         self.info.total_frames += n_frames
         self.info.splits = {"train": f"0:{self.info.total_episodes}"}
@@ -231,6 +248,7 @@ class DemonstrationWriter:
             p.parent.mkdir(parents=True, exist_ok=True)
         with _no_interrupt():
             pq.write_table(data, f"{data_path}.tmp", compression="snappy")
+            fault.point("collect.data_written")
             pq.write_table(ep_table, f"{ep_path}.tmp", compression="snappy")
             tmp_root = self.root / ".commit.tmp"
             tmp_root.mkdir(exist_ok=True)
@@ -239,11 +257,25 @@ class DemonstrationWriter:
             Path(f"{data_path}.tmp").replace(data_path)
             Path(f"{ep_path}.tmp").replace(ep_path)
             (tmp_root / "meta/stats.json").replace(self.root / "meta/stats.json")
+            fault.point("collect.renaming")
             (tmp_root / "meta/info.json").replace(self.root / "meta/info.json")
+            fault.point("collect.committed")
             shutil.rmtree(tmp_root)
-        self.stats = stats
+        self.episode_stats += ep_stats
         self.n_files += 1
 
+
+def _read_episode_stats(episodes_file: Path) -> list[dict]:
+    """The per-episode statistics of a committed episodes file, as ``_episode_stats`` made them."""
+    table = pq.read_table(episodes_file)
+    out = [{} for _ in range(table.num_rows)]
+    for name in table.column_names:
+        if not name.startswith("stats/"):
+            continue
+        _, key, stat = name.split("/", 2)
+        for e, value in enumerate(table.column(name).to_pylist()):
+            out[e].setdefault(key, {})[stat] = np.array(value)
+    return out
 
 def _flat(d: dict, prefix: str = "") -> dict:
     out = {}

@@ -16,12 +16,12 @@ from __future__ import annotations
 import math
 
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot.datasets.utils import create_lerobot_dataset_card
 
+from . import fault
 from .cli import run_cli
 from .config import CrowdSimConfig
 from .dataset import FPS
@@ -56,20 +56,25 @@ batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
 
 
 def _publish(target: Path, overwrite: bool, fill) -> Path:
-    """Write a repository directory aside with ``fill(staging_dir)``, then move it to ``target``
-    (replacing an existing one only with ``overwrite``)."""
+    """Write a repository directory aside with ``fill(staging_dir)``, then swap it with ``target``
+    in one atomic rename (replacing an existing one only with ``overwrite``): a reader, or a kill,
+    sees the old complete repository or the new one. A killed push's staging is removed by the next."""
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} exists; pass --overwrite=true (collect_orca: --push_overwrite=true) to replace it")
     target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    staging = target.with_name(f".{target.name}.push.tmp")
+    shutil.rmtree(staging, ignore_errors=True)
     try:
         fill(staging / "repo")
-        if target.exists():
-            target.replace(staging / "old")
-        (staging / "repo").replace(target)
+        fault.replace_dir(staging / "repo", target)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return target
+
+
+def _copy_file(src: str, dst: str) -> None:
+    fault.point("hub.copying")
+    shutil.copy2(src, dst)
 
 
 def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, overwrite: bool = False) -> Path:
@@ -81,7 +86,8 @@ def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, ove
         raise FileNotFoundError(f"{root} has no dataset card (README.md)")
     org, name = split_repo_id(repo_id)
     return _publish(Path(hub_dir) / "datasets" / org / name, overwrite,
-                    lambda dst: shutil.copytree(root, dst, ignore=shutil.ignore_patterns(*REPO_IGNORE)))
+                    lambda dst: shutil.copytree(root, dst, ignore=shutil.ignore_patterns(*REPO_IGNORE),
+                                                copy_function=_copy_file))
 
 
 PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
@@ -205,7 +211,7 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
     def fill(dst: Path) -> None:
         dst.mkdir(parents=True)
         for f in files:
-            shutil.copy2(f, dst / f.name)
+            _copy_file(f, dst / f.name)
         card.save(dst / "README.md")
 
     return _publish(Path(hub_dir) / "models" / org / name, overwrite, fill)

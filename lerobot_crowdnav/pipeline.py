@@ -166,7 +166,8 @@ class Pipeline:
 
         root = self.dataset_root(task)
         info = root / "meta" / "info.json"
-        done = info.exists() and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
+        done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
+                and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos)
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
                 f"--repo_id={self.repo_id(task)}", f"--root={root}"]
         resume = ["--resume=true"] if root.exists() else []
@@ -218,7 +219,7 @@ class Pipeline:
                 f"--save_freq={max(c.ft_val_freq, c.ft_env_steps // 4)}", f"--seed={seed}", f"--output_dir={out}"]
         if self.device:
             argv.append(f"--device={self.device}")
-        resume = ["--resume=true"] if saved.exists() else []
+        resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
 
     @property

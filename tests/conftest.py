@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
 from hypothesis import settings
 
 settings.register_profile("reproducible", derandomize=True, deadline=None)
@@ -31,18 +30,8 @@ def small_pdpo_config(**overrides):
 def make_tiny_checkpoint(root: Path, **overrides) -> Path:
     """An untrained small PDPO checkpoint with the statistics of an 8-episode ORCA dataset:
     ``root/pretrained_model`` with config, weights and processors, as lerobot-train saves it."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot_policy_pdpo import PDPOPolicy, make_pdpo_pre_post_processors
-
     from lerobot_crowdnav.collect import main as collect_main
+    from lerobot_crowdnav.fault_injection import untrained_checkpoint
 
-    repo_id = f"local/{root.name}"
-    collect_main(["--episodes=8", "--batch_size=8", f"--root={root / 'ds'}", f"--repo_id={repo_id}"])
-    stats = LeRobotDataset(repo_id, root=root / "ds").meta.stats
-    cfg = small_pdpo_config(**overrides)
-    torch.manual_seed(0)
-    out = root / "pretrained_model"
-    PDPOPolicy(cfg).save_pretrained(out)
-    for processor in make_pdpo_pre_post_processors(cfg, stats):
-        processor.save_pretrained(out)
-    return out
+    collect_main(["--episodes=8", "--batch_size=8", f"--root={root / 'ds'}", f"--repo_id=local/{root.name}"])
+    return untrained_checkpoint(root, root / "ds", small_pdpo_config(**overrides))

@@ -20,6 +20,7 @@ from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_proce
 from lerobot_policy_pdpo.processor_pdpo import crowd_state_stats
 
 from lerobot_crowdnav.collect import main as collect_main
+from lerobot_crowdnav.fault_injection import ROOT, run_killed
 
 REPO = "local/test_pdpo"
 BIN = Path(sys.executable).parent
@@ -38,8 +39,11 @@ def make_config(**kw) -> PDPOConfig:
 
 @pytest.fixture(scope="module")
 def dataset_root(tmp_path_factory):
+    """A collection SIGKILLed mid-commit and resumed (issue 12: lerobot-train must read it)."""
     root = tmp_path_factory.mktemp("pdpo") / "ds"
-    collect_main(["--episodes=16", "--batch_size=8", f"--root={root}", f"--repo_id={REPO}"])
+    argv = ["--episodes=16", "--batch_size=8", f"--root={root}", f"--repo_id={REPO}"]
+    run_killed([str(ROOT / "datasets_scripts/collect_orca.py"), *argv], "collect.renaming", 2)
+    collect_main([*argv, "--resume=true"])
     return root
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from lerobot_crowdnav import fault_injection as fi
 from lerobot_crowdnav.pipeline import main as pipeline_main
 from lerobot_crowdnav.report import Row, boundary_audit, csv_table, markdown_table, parameter_table
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def metrics(sr, nt, pl, itr, sd, episodes=()):
@@ -48,10 +48,17 @@ def test_boundary_audit_counts_successful_episodes_only():
     assert "| PDPO | 0.832 | 0.198 |" in md and "| paper (PDPO) | 0.848 | 0.201 |" in md
 
 
-def test_main_job_runs_end_to_end_in_a_tiny_configuration(tmp_path):
-    argv = [f"--config_path={CONFIGS / 'main' / 'tiny.yaml'}", f"--output_root={tmp_path}"]
-    pipeline_main(argv)
-    root = tmp_path / "tiny"
+@pytest.fixture(scope="module")
+def tiny_main(tmp_path_factory) -> Path:
+    """The output_root of an uninterrupted tiny main job."""
+    out = tmp_path_factory.mktemp("main")
+    pipeline_main(fi.main_argv(out))
+    return out
+
+
+def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
+    argv = fi.main_argv(tiny_main)
+    root = tiny_main / "tiny"
     report = (root / "report.md").read_text()
     for section in ("## Budget", "## Bounded CrowdNav", "## original CrowdNav", "### Boundary audit",
                     "## Parameter counts", "## Figures", "## Stages", "## Reproduce"):
@@ -82,3 +89,10 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tmp_path):
     assert "| pretrain bounded H=5 seed=1000 |" in rerun and "skipped (complete)" in rerun
     pipeline_main(argv + ["--rerun_eval=true"])
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
+
+
+def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path):
+    """Killed writing the first fine-tuning's checkpoint (no last yet: the rerun restarts that stage
+    with --resume=true); the rerun completes and its tables equal the uninterrupted run's. More
+    points: scripts/fault_injection.py."""
+    assert fi.main_case(tmp_path, "finetune.checkpoint_writing", 1, tiny_main) == []

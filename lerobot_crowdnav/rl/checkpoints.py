@@ -5,8 +5,9 @@
                                                env_rank<r>.npz, rng_rank<r>.json
     checkpoints/last -> <latest>;  checkpoints/best/pretrained_model (+ best.json)
 
-Every checkpoint is written under a hidden staging name and renamed when complete, so an
-interrupted save never leaves a half checkpoint behind ``last`` or ``best``.
+Every checkpoint is written under a hidden staging name and swapped in with one atomic rename
+when complete (``fault.replace_dir``), so an interrupted save never leaves a half checkpoint
+behind ``last`` or ``best``, nor loses the previous ``best``.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+
+from .. import fault
 
 # Settings that must not change when a run is resumed.
 RESUME_KEYS = ("env", "num_envs", "ppo", "seed", "env_seed")
@@ -53,18 +56,20 @@ class Checkpoints:
             shutil.rmtree(staging, ignore_errors=True)
             state.mkdir(parents=True)
             save_policy(staging / "pretrained_model")
+            fault.point("finetune.checkpoint_writing")
             torch.save(shared, state / "optimizers.pt")
         self.acc.wait_for_everyone()
         save_rank_state(state, self.rank)
         self.acc.wait_for_everyone()
         final = self.root / name
-        if self.acc.is_main_process:
-            shutil.rmtree(final, ignore_errors=True)
-            staging.replace(final)
+        if self.acc.is_main_process:  # complete, then in place, then named last: never a partial last
+            fault.replace_dir(staging, final)
+            fault.point("finetune.checkpoint_renamed")
             link = self.root / ".last.tmp"
             link.unlink(missing_ok=True)
             link.symlink_to(name)
             link.replace(self.last)
+            fault.point("finetune.last_linked")
         self.acc.wait_for_everyone()
         return final
 
@@ -74,9 +79,7 @@ class Checkpoints:
         shutil.rmtree(staging, ignore_errors=True)
         save_policy(staging / "pretrained_model")
         (staging / "best.json").write_text(json.dumps(info, indent=2))
-        best = self.root / "best"
-        shutil.rmtree(best, ignore_errors=True)
-        staging.replace(best)
+        fault.replace_dir(staging, self.root / "best")
 
     def load_shared(self) -> dict:
         return torch.load(self.last / "training_state" / "optimizers.pt", map_location=self.acc.device, weights_only=True)

@@ -131,15 +131,15 @@ def finetune(cfg: FinetuneConfig) -> dict:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
     settings = json.loads(json.dumps(draccus.encode(cfg), default=str))
     ckpts = Checkpoints(out / "checkpoints", acc, max(9, len(str(cfg.env_steps))))
-    if cfg.resume:
-        if not ckpts.last.exists():
-            raise FileNotFoundError(f"--resume=true: no checkpoint at {ckpts.last}")
+    # --resume=true before the first checkpoint (killed early): start over from --policy.path.
+    resumed = cfg.resume and ckpts.last.exists()
+    if resumed:
         saved = json.loads((ckpts.last / "pretrained_model" / "finetune_config.json").read_text())
         if changed := resume_conflicts(saved, settings, world):
             raise ValueError(f"--resume=true with different settings than the saved run: {', '.join(changed)}")
         source = ckpts.last / "pretrained_model"
     else:
-        if out.exists() and any(out.iterdir()):
+        if not cfg.resume and out.exists() and any(out.iterdir()):
             raise FileExistsError(f"{out} exists; pass --resume=true to continue its run or choose another --output_dir")
         if cfg.policy.path is None:
             raise ValueError("--policy.path=<pretrained PDPO checkpoint> is required")
@@ -175,7 +175,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
             {"numpy": rng.bit_generator.state, **collector.state_dict(), "obs_shape": list(collector.obs.shape)}))
 
     collector.reset(cfg.env_seed + rank * 10_000_000)
-    if cfg.resume:
+    if resumed:
         shared = ckpts.load_shared()
         for name, opt in optimizers.items():
             opt.load_state_dict(shared[f"{name}_opt"])
@@ -186,7 +186,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
         saved_rng = json.loads((state / f"rng_rank{rank}.json").read_text())
         rng.bit_generator.state = saved_rng["numpy"]
         collector.load_state_dict(saved_rng)
-    log = RunLog(out, main, progress["iteration"], cfg.resume, cfg.wandb, settings)
+    log = RunLog(out, main, progress["iteration"], resumed, cfg.wandb, settings)
 
     def validate_and_keep_best() -> dict:
         val = validate(agent, val_env, cfg.val.n_episodes, sim_cfg.dt, acc.device)

@@ -20,12 +20,12 @@ class RunLog:
             return
         self.out.mkdir(parents=True, exist_ok=True)
         self.progress = self.out / "progress.jsonl"
-        if self.progress.exists():
+        if resume and self.progress.exists():  # keep the history up to the checkpoint resumed
             self.records = [r for r in map(json.loads, self.progress.read_text().splitlines()) if r["iteration"] <= iteration]
         self.progress.write_text("".join(json.dumps(r) + "\n" for r in self.records))
         from torch.utils.tensorboard import SummaryWriter
 
-        self.writer = SummaryWriter(self.out / "tensorboard", purge_step=iteration + 1 if resume else None)
+        self.writer = SummaryWriter(self.out / "tensorboard", purge_step=iteration + 1 if resume else 0)
         if wandb_cfg.enable:
             import wandb
 
