@@ -12,6 +12,7 @@ import dataclasses
 import json
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,35 +82,43 @@ class CollectConfig:
         return root
 
 
-def rollout_block(sim: CrowdSim, seeds: np.ndarray) -> list[dict]:
-    """One ORCA episode per slot for ``seeds``; returns them in seed order, each with its
-    pre-step observations, executed (clipped) actions, rewards, event and success."""
-    b = len(seeds)
-    slots = np.arange(sim.num_envs)
-    padded = np.concatenate([seeds, np.full(sim.num_envs - b, seeds[0])])  # idle slots if short
-    sim.reset(padded, slots)
-    t_max = sim.config.max_steps
-    obs = np.empty((t_max, sim.num_envs, sim.config.obs_dim), np.float32)
-    act = np.empty((t_max, sim.num_envs, 2), np.float32)
-    rew = np.empty((t_max, sim.num_envs), np.float32)
-    end = np.full(sim.num_envs, -1)  # episode length once ended; idle slots never run
-    end[b:] = 0
-    event = np.zeros(sim.num_envs, np.int64)
-    for t in range(t_max):
-        running = end < 0  # ended slots are not simulated further
-        if not running.any():
-            break
-        obs[t] = sim.obs
-        a = sim.clip_actions(sim.orca_actions(running))
-        res = sim.step(a, running)
-        act[t] = a
-        rew[t] = res.reward
-        new = running & (res.event != RUNNING)
-        end[new] = t + 1
-        event[new] = res.event[new]
-    return [{"seed": int(seeds[i]), "event": EVENT_NAMES[event[i]], "success": bool(event[i] == SUCCESS),
-             "obs": obs[: end[i], i], "action": act[: end[i], i], "reward": rew[: end[i], i]}
-            for i in range(b)]
+def orca_episodes(sim: CrowdSim, first_seed: int) -> Iterator[dict]:
+    """ORCA episodes on the consecutive train seeds from ``first_seed``, yielded in seed order,
+    each with its pre-step observations, executed (clipped) actions, rewards, event and success.
+
+    A slot whose episode ends starts the next seed in the same step, so every step simulates a
+    full batch instead of waiting for the longest episode of a block (a seed's episode does not
+    depend on its slot, so the episodes are those of any other schedule)."""
+    b, t_max = sim.num_envs, sim.config.max_steps
+    obs = np.empty((b, t_max, sim.config.obs_dim), np.float32)
+    act = np.empty((b, t_max, 2), np.float32)
+    rew = np.empty((b, t_max), np.float32)
+    slots, t = np.arange(b), np.zeros(b, np.int64)
+    seeds = np.arange(first_seed, first_seed + b)
+    next_seed, emit = first_seed + b, first_seed
+    sim.reset(seeds)
+    finished: dict[int, dict] = {}
+    while True:
+        obs[slots, t] = sim.obs
+        a = sim.clip_actions(sim.orca_actions())
+        res = sim.step(a)
+        act[slots, t], rew[slots, t] = a, res.reward
+        t += 1
+        ended = np.flatnonzero(res.event != RUNNING)
+        for i in ended:
+            n, event = t[i], res.event[i]
+            finished[int(seeds[i])] = {"seed": int(seeds[i]), "event": EVENT_NAMES[event], "success": bool(event == SUCCESS),
+                                       "obs": obs[i, :n].copy(), "action": act[i, :n].copy(), "reward": rew[i, :n].copy()}
+        if len(ended):
+            if next_seed + len(ended) > SEED_SPLITS["train"][1]:
+                raise RuntimeError("ran out of train seeds")
+            seeds[ended] = np.arange(next_seed, next_seed + len(ended))
+            next_seed += len(ended)
+            t[ended] = 0
+            sim.reset(seeds[ended], ended)
+        while emit in finished:
+            yield finished.pop(emit)
+            emit += 1
 
 
 def collect(cfg: CollectConfig) -> dict:
@@ -128,12 +137,10 @@ def collect(cfg: CollectConfig) -> dict:
     start = time.perf_counter()
     frames = 0
     bar = tqdm(total=cfg.episodes, initial=min(kept, cfg.episodes), unit="ep", desc="collect orca")
+    stream = orca_episodes(sim, next_seed)
     while kept < cfg.episodes:
-        if next_seed + sim.num_envs > SEED_SPLITS["train"][1]:
-            raise RuntimeError("ran out of train seeds")
-        seeds = np.arange(next_seed, next_seed + sim.num_envs)
-        next_seed += sim.num_envs
-        episodes = rollout_block(sim, seeds)
+        # Blocks of batch_size consecutive seeds, committed together (what a resume restarts from).
+        episodes = [next(stream) for _ in range(sim.num_envs)]
         if cfg.keep == "success":
             episodes = [e for e in episodes if e["success"]]
         episodes = episodes[: cfg.episodes - kept]
@@ -142,6 +149,7 @@ def collect(cfg: CollectConfig) -> dict:
         frames += sum(len(e["action"]) for e in episodes)
         bar.update(len(episodes))
         bar.set_postfix(frames=frames, eps_per_s=f"{(kept - len(done)) / (time.perf_counter() - start):.0f}")
+    stream.close()
     bar.close()
     elapsed = time.perf_counter() - start
 

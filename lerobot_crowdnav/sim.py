@@ -542,7 +542,7 @@ def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg
 
 
 @nb.njit(cache=True, parallel=True)
-def step_many(n_chunks, active, actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
+def step_many(n_chunks, actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
               hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth,
               obs, out_reward, out_event, out_dmin, out_intrusion, out_intr_dist, out_distance,
               out_oob):
@@ -550,8 +550,6 @@ def step_many(n_chunks, active, actions, p, no_obst, all_idx, rng, step_count, p
     for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, 0)
         for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
-            if not active[b]:
-                continue
             _step_one(b, actions[b], p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg,
                       hp, hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos,
                       fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
@@ -559,14 +557,12 @@ def step_many(n_chunks, active, actions, p, no_obst, all_idx, rng, step_count, p
 
 
 @nb.njit(cache=True, parallel=True)
-def orca_robot_many(n_chunks, active, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+def orca_robot_many(n_chunks, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
                     seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth, out):
     n_env = rp.shape[0]
     for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, robot_obst[0].shape[0])
         for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
-            if not active[b]:
-                continue
             _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp,
                             seen_pos, seen_vel, seen_r, visible, nd, fut_pos, fut_vel,
                             rollout_depth, s, out)
@@ -683,49 +679,35 @@ class CrowdSim:
             raise ValueError(f"non-finite action (NaN or inf) in env slot(s) {bad.tolist()}")
         return np.ascontiguousarray(a)
 
-    def _active(self, active) -> np.ndarray:
-        if active is None:
-            return np.ones(self.num_envs, np.bool_)
-        active = np.asarray(active, np.bool_)
-        if active.shape != (self.num_envs,):
-            raise ValueError(f"active must have shape ({self.num_envs},), got {active.shape}")
-        return active
-
-    def step(self, actions, active=None) -> StepResult:
-        """Advance every slot one step, or only the slots where ``active`` (B,) is true: the others
-        keep their state untouched and read zeros in the result (e.g. finished episodes of a
-        collection block, which would otherwise be simulated for nothing)."""
+    def step(self, actions) -> StepResult:
         a = self.check_actions(actions)
-        active = self._active(active)
         B = self.num_envs
-        res = StepResult(np.zeros(B), np.zeros(B, np.int64), np.zeros(B), np.zeros(B, np.bool_),
-                         np.zeros(B), np.zeros(B), np.zeros(B, np.bool_))
+        res = StepResult(np.empty(B), np.empty(B, np.int64), np.empty(B), np.empty(B, np.bool_),
+                         np.empty(B), np.empty(B), np.empty(B, np.bool_))
         outs = (res.reward, res.event, res.min_distance, res.intrusion, res.intrusion_distance,
                 res.distance, res.out_of_bounds)
         if self._parallel:
-            step_many(self._n_chunks(), active, a, self.params, self._no_obstacles, self._all_idx,
+            step_many(self._n_chunks(), a, self.params, self._no_obstacles, self._all_idx,
                       *self._state(), *outs)
         else:
-            for b in np.flatnonzero(active):
+            for b in range(B):
                 _step_one(b, a[b], self.params, self._no_obstacles, self._all_idx, *self._state(),
                           *outs, self._scratch)
         return res
 
-    def orca_actions(self, active=None) -> np.ndarray:
+    def orca_actions(self) -> np.ndarray:
         """The ORCA robot's velocities ``(B, 2)`` for the current observations (``config.orca_robot``
-        picks which of CrowdNav++'s two; the look-ahead robot's roll-out is reused by ``step``);
-        zeros for slots not ``active``."""
-        active = self._active(active)
-        out = np.zeros((self.num_envs, 2))
+        picks which of CrowdNav++'s two; the look-ahead robot's roll-out is reused by ``step``)."""
+        out = np.empty((self.num_envs, 2))
         args = (self.params, self.robot_obstacles, self._no_obstacles, self._all_idx,
                 self.robot_pos, self.robot_vel, self.robot_goal, self.human_pos, self.human_vel,
                 self.human_goal, self.human_radius, self.human_vpref, self.seen_pos, self.seen_vel,
                 self.seen_radius, self.visible, self.neighbor_dist, self.future_pos,
                 self.future_vel, self.rollout_depth)
         if self._parallel:
-            orca_robot_many(self._n_chunks(), active, *args, out)
+            orca_robot_many(self._n_chunks(), *args, out)
         else:
-            for b in np.flatnonzero(active):
+            for b in range(self.num_envs):
                 _orca_robot_one(b, *args, self._scratch, out)
         return out
 

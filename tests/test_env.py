@@ -340,22 +340,3 @@ def test_gym_make_imports_the_package_itself_with_module_syntax():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "(269,)"
-
-
-@pytest.mark.parametrize("batch", [6, 20])  # serial and parallel kernels
-def test_inactive_slots_are_not_stepped(batch):
-    sim, ref = CrowdSim(CrowdSimConfig(), batch), CrowdSim(CrowdSimConfig(), batch)
-    for s in (sim, ref):
-        s.reset(np.arange(batch) + 5)
-    active = np.arange(batch) % 3 != 0
-    before = sim.state_dict()
-    actions = sim.orca_actions(active)
-    res = sim.step(actions, active)
-    ref.step(ref.orca_actions())
-    after, want = sim.state_dict(), ref.state_dict()
-    for key in ("rng", "step_count", "robot_pos", "human_pos", "seen_pos", "obs"):
-        assert np.array_equal(after[key][~active], before[key][~active]), key
-        assert np.array_equal(after[key][active], want[key][active]), key
-    assert not actions[~active].any() and not res.reward[~active].any()
-    with pytest.raises(ValueError, match="active"):
-        sim.step(actions, active[:-1])

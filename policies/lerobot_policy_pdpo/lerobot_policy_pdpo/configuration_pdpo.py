@@ -78,6 +78,9 @@ class PDPOConfig(PreTrainedConfig):
     optimizer_lr: float = 1e-3
     optimizer_weight_decay: float = 1e-6
     optimizer_betas: tuple[float, float] = (0.9, 0.999)
+    # (k, noise) draws per observation in the denoising loss, sharing one crowd encoding (1: the
+    # paper; more lowers the loss's variance for little compute: docs/performance.md).
+    noise_draws: int = 1
     # Exponential moving average of the actor's weights, used for sampling (DPPO pretraining: 0.995).
     use_ema: bool = True
     ema_decay: float = 0.995
@@ -94,6 +97,8 @@ class PDPOConfig(PreTrainedConfig):
             raise ValueError("PDPO conditions on the current observation only (n_obs_steps = 1)")
         if self.human_mlp_dims[-1] % self.attention_heads:
             raise ValueError("human_mlp_dims[-1] must be divisible by attention_heads")
+        if self.noise_draws < 1:
+            raise ValueError(f"noise_draws must be >= 1, got {self.noise_draws}")
         if self.num_diffusion_steps < 1:
             raise ValueError("num_diffusion_steps must be >= 1")
         if not 0 <= self.ft_denoising_steps <= self.num_diffusion_steps:

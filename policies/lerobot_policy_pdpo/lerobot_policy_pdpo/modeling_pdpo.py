@@ -136,11 +136,15 @@ class DiffusionActor(nn.Module):
         }.items():
             self.register_buffer(name, value, persistent=False)
 
-    def denoising_loss(self, state: Tensor, x0: Tensor, valid: Tensor) -> Tensor:
+    def denoising_loss(self, state: Tensor, x0: Tensor, valid: Tensor, noise_draws: int = 1) -> Tensor:
         """``|eps - eps_theta(sqrt(abar_k) x_0 + sqrt(1 - abar_k) eps, z, k)|^2`` with k uniform,
-        averaged over the chunk steps ``valid (B, H)`` (not padding); ``x0 (B, H, 2)`` in [-1, 1]."""
-        b = x0.shape[0]
+        averaged over the chunk steps ``valid (B, H)`` (not padding); ``x0 (B, H, 2)`` in [-1, 1].
+        ``noise_draws`` (k, eps) pairs per observation share one encoding: the encoder costs far
+        more than the denoiser, so extra draws lower the gradient's variance almost for free."""
         z = self.encoder(state)
+        if noise_draws > 1:
+            z, x0, valid = (t.repeat_interleave(noise_draws, dim=0) for t in (z, x0, valid))
+        b = x0.shape[0]
         k = torch.randint(0, len(self.alphas_cumprod), (b,), device=x0.device)
         noise = torch.randn_like(x0)
         abar = self.alphas_cumprod[k][:, None, None]
@@ -218,7 +222,7 @@ class PDPOPolicy(PreTrainedPolicy):
         """The denoising loss over the chunk steps that are not padding."""
         x0 = batch[ACTION]  # (B, H, 2) in [-1, 1]
         valid = ~batch["action_is_pad"] if "action_is_pad" in batch else torch.ones_like(x0[..., 0], dtype=torch.bool)
-        loss = self.actor.denoising_loss(batch[OBS_STATE], x0, valid)
+        loss = self.actor.denoising_loss(batch[OBS_STATE], x0, valid, self.config.noise_draws)
         return loss, {"denoise_mse": loss.item(), "valid_fraction": valid.float().mean().item()}
 
     def update(self) -> None:
