@@ -124,6 +124,32 @@ def test_forward_backward_on_real_data_ignores_padding(dataset_root):
     assert torch.equal(a, b) and c > 1e6
 
 
+def test_noise_draws_share_one_encoding_and_respect_padding(dataset_root):
+    """noise_draws = D: the encoder runs once on B observations, the denoiser on D x B noised
+    chunks (each observation's padding mask repeated); D = 1 is the paper's loss."""
+    torch.manual_seed(0)
+    cfg = make_config(noise_draws=4)
+    policy = PDPOPolicy(cfg)
+    batch, _ = _batch(dataset_root, cfg, n=16)
+    batch["action_is_pad"][:, 4:] = True
+    seen = {}
+    enc, den = policy.actor.encoder.forward, policy.actor.denoiser.forward
+    policy.actor.encoder.forward = lambda s: seen.setdefault("enc", s.shape[0]) and enc(s)
+    policy.actor.denoiser.forward = lambda x, k, z: seen.setdefault("den", x.shape[0]) and den(x, k, z)
+    loss, _ = policy.forward(batch)
+    assert seen == {"enc": 16, "den": 64} and torch.isfinite(loss)
+    policy.actor.encoder.forward = enc
+    # Padded steps of every draw stay out of the loss.
+    torch.manual_seed(1)
+    a, _ = policy.forward(batch)
+    policy.actor.denoiser.forward = lambda x, k, z: den(x, k, z) + torch.tensor([0, 0, 0, 0, 1e6])[None, :, None]
+    torch.manual_seed(1)
+    b, _ = policy.forward(batch)
+    assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="noise_draws"):
+        make_config(noise_draws=0)
+
+
 def test_sentinel_rows_do_not_distort_state_statistics():
     cfg = make_config()
     rng = np.random.default_rng(0)
