@@ -41,7 +41,7 @@ from pathlib import Path
 import draccus
 
 from .cli import run_cli
-from .config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
+from .sim.config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
 
 SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
 TITLE = {"BoundedCrowdNav-v0": "Bounded CrowdNav", "CrowdNav-v0": "original CrowdNav"}
@@ -162,7 +162,7 @@ class Pipeline:
 
     # -- stages --------------------------------------------------------------------------------
     def collect(self, task: str) -> None:
-        from .collect import main as collect_main
+        from .data.collect import main as collect_main
 
         root = self.dataset_root(task)
         info = root / "meta" / "info.json"
@@ -206,7 +206,7 @@ class Pipeline:
         self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, done, run)
 
     def finetune(self, task: str, h: int, seed: int) -> None:
-        from .finetune import main as finetune_main
+        from .rl.finetune import main as finetune_main
 
         out = self.finetune_dir(task, h, seed)
         saved = out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
@@ -247,7 +247,7 @@ class Pipeline:
         return self.root / "eval" / SHORT[task] / name
 
     def evaluate(self, task: str, ev: Evaluation) -> None:
-        from .eval import main as eval_main
+        from .evaluation.eval import main as eval_main
 
         out = self.eval_dir(task, ev.name)
         metrics = out / "metrics.json"
@@ -262,7 +262,7 @@ class Pipeline:
         self._stage(f"eval {SHORT[task]} {ev.name}", argv, done, lambda: eval_main(argv[1:]))
 
     def push(self, task: str) -> None:
-        from .hub import push_dataset_to_dir, push_policy_to_dir
+        from .data.hub import push_dataset_to_dir, push_policy_to_dir
 
         hub = self.root / "hub"
         repo = self.repo_id(task)
@@ -282,8 +282,8 @@ class Pipeline:
                         lambda p=pretrained, r=policy_repo, m=metrics: push_policy_to_dir(p, r, hub, True, m))
 
     def figures(self, task: str) -> dict[str, Path]:
-        from .figures import record_snapshots
-        from .plots import plot_finetune_curves, plot_multimodality, plot_storyboard
+        from .evaluation.figures import record_snapshots
+        from .evaluation.plots import plot_finetune_curves, plot_multimodality, plot_storyboard
 
         out = self.root / "figures" / SHORT[task]
         seed = self.cfg.seeds[0]
@@ -332,7 +332,7 @@ class Pipeline:
                     self.evaluate(task, ev)
             self.push(task)
             self.figures(task)
-        from .report import write_report
+        from .evaluation.report import write_report
 
         report = write_report(self, time.perf_counter() - start)
         print(f"[main] report: {report}")

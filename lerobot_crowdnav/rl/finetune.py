@@ -25,8 +25,8 @@ import torch
 from tqdm import tqdm
 
 from ..cli import run_cli
-from ..config import SEED_SPLITS, CrowdSimConfig
-from ..envs import CrowdNavVectorEnv
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.envs import CrowdNavVectorEnv
 from .checkpoints import Checkpoints, resume_conflicts
 from .config import DiffusionPPOConfig
 from .dppo import check_compatible, load_agent

@@ -43,8 +43,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .config import SEED_SPLITS, CrowdSimConfig
-from .layout import ROBOT_DIM, SELF_DIM
-from .sim import EVENT_NAMES, RUNNING, SUCCESS, TIMEOUT, CrowdSim
+from ..layout import ROBOT_DIM, SELF_DIM
+from .engine import EVENT_NAMES, RUNNING, SUCCESS, TIMEOUT, CrowdSim
 
 ROBOT_POLICIES = ("orca", "straight")
 

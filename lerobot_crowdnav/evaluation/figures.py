@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
-from .cli import run_cli
-from .config import SEED_SPLITS, CrowdSimConfig
-from .envs import CrowdNavEnv
-from .eval import LearnedPolicy
+from ..cli import run_cli
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.envs import CrowdNavEnv
+from .episodes import LearnedPolicy
 from .plots import plot_multimodality, plot_storyboard
 
 

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import SEED_SPLITS
+from ..sim.config import SEED_SPLITS
 
 # column -> (metrics key, scale, digits, header)
 COLUMNS = {
@@ -123,8 +123,8 @@ def write_report(pipeline, wall_time_s: float) -> Path:
     """``<run>/report.md`` and ``<run>/tables/*.csv`` from the metrics files of a pipeline run
     (:class:`lerobot_crowdnav.pipeline.Pipeline`); every number with its command, config and seed."""
     from .eval import machine_description
-    from .hub import parameter_counts
-    from .pipeline import SHORT, TITLE
+    from ..data.hub import parameter_counts
+    from ..pipeline import SHORT, TITLE
 
     cfg, root = pipeline.cfg, pipeline.root
     tables = root / "tables"

@@ -20,9 +20,9 @@ import draccus
 import gymnasium as gym
 import numpy as np
 
+from ..cli import machine_description
 from .config import CrowdSimConfig
 from .envs import CrowdNavVectorEnv
-from .eval import machine_description
 
 
 @dataclass
