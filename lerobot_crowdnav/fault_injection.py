@@ -165,7 +165,7 @@ def finetune_case(work: Path, pretrained: Path, point: str, count: int, referenc
 
     out = work / f"finetune_{point}_{count}"
     argv = finetune_argv(pretrained, out, env_steps)
-    run_killed(["-m", "lerobot_crowdnav.finetune", *argv], point, count)
+    run_killed(["-m", "lerobot_crowdnav.rl.finetune", *argv], point, count)
     check_last_checkpoint(out)
     finetune_main([*argv, "--resume=true"])
     return finetune_differences(out, reference)
@@ -187,7 +187,7 @@ def hub_case(work: Path, kind: str, source: Path, old_source: Path, point: str, 
     push_main([*argv, f"--root={old_source}"])
     target = hub / ("datasets" if kind == "dataset" else "models") / repo_id
     old = tree(target)
-    run_killed(["-m", "lerobot_crowdnav.hub", *argv, f"--root={source}"], point, count)
+    run_killed(["-m", "lerobot_crowdnav.data.hub", *argv, f"--root={source}"], point, count)
     seen = tree(target)
     push_main([*argv, f"--root={source}"])
     new = tree(target)

@@ -6,7 +6,7 @@ card with its YAML header), loadable with ``LeRobotDataset("<org>/<name>", root=
 processors, ``train_config.json``, ``README.md`` model card), loadable with ``--policy.path``. A push
 is written aside and moved into place, so a failed push never leaves a half-written repository.
 
-Standalone: ``python -m lerobot_crowdnav.hub --kind=dataset|policy --root=<dataset or
+Standalone: ``python -m lerobot_crowdnav.data.hub --kind=dataset|policy --root=<dataset or
 pretrained_model> --repo_id=<org>/<name> --push_to_hub_dir=<dir> [--overwrite=true]
 [--metrics=<metrics.json>]``.
 """

@@ -3,7 +3,7 @@
     lerobot-crowdnav-finetune --policy.path=outputs/train/bounded_pdpo/checkpoints/last/pretrained_model \\
         --env.task=BoundedCrowdNav-v0 --env_steps=12000000 --output_dir=outputs/finetune/bounded_pdpo
     lerobot-crowdnav-finetune --config_path=configs/finetune/bounded_pdpo.yaml [--resume=true]
-    accelerate launch --num_processes=2 -m lerobot_crowdnav.finetune ...   # DDP, one env batch per process
+    accelerate launch --num_processes=2 -m lerobot_crowdnav.rl.finetune ...   # DDP, one env batch per process
 
 One iteration: every process collects ``ppo.n_steps`` steps of its ``num_envs`` envs with the
 DPPO agent (rl/dppo.py), then ``ppo.update_epochs`` epochs of minibatch updates (rl/loop.py);

@@ -1,4 +1,4 @@
-"""Simulator throughput: ``lerobot-crowdnav-bench`` (also ``python -m lerobot_crowdnav.benchmark``).
+"""Simulator throughput: ``lerobot-crowdnav-bench`` (also ``python -m lerobot_crowdnav.sim.benchmark``).
 
 Measures env-steps/s (one env-step = one environment advanced by dt) through the public APIs:
 the native batched env (``CrowdNavVectorEnv``, autoreset and info included) for each batch size
