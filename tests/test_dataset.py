@@ -19,8 +19,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetad
 from lerobot.processor import NormalizerProcessorStep
 
 from lerobot_crowdnav.data.collect import main as collect_main
-from lerobot_crowdnav.sim.envs import CrowdNavEnv
 from lerobot_crowdnav.data.hub import main as push_main
+from lerobot_crowdnav.sim.envs import CrowdNavEnv
 
 REPO = "local/test_orca"
 H = 5  # PDPO's action chunk

@@ -11,8 +11,8 @@ import sys
 import pytest
 from PIL import Image
 
-from lerobot_crowdnav.sim.config import split_seeds
 from lerobot_crowdnav.evaluation.eval import EvalSettings, main
+from lerobot_crowdnav.sim.config import split_seeds
 
 TASKS = ("BoundedCrowdNav-v0", "CrowdNav-v0")
 POLICIES = ("orca", "straight")

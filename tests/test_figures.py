@@ -11,9 +11,9 @@ from conftest import make_tiny_checkpoint
 from PIL import Image
 
 from lerobot_crowdnav.evaluation import figures
+from lerobot_crowdnav.evaluation.plots import chunk_positions, plot_multimodality, plot_storyboard
 from lerobot_crowdnav.sim.config import CrowdSimConfig
 from lerobot_crowdnav.sim.envs import CrowdNavEnv, structured
-from lerobot_crowdnav.evaluation.plots import chunk_positions, plot_multimodality, plot_storyboard
 
 SENSING, DT = 6.0, 0.25
 # Pixel sizes: panels of 3.2 x 3.4 in, a 0.6 in legend band, 0.3 in for a title, at 150 dpi.

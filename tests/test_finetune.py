@@ -16,13 +16,13 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_policy_pdpo import PDPOPolicy
 
-from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 from lerobot_crowdnav.evaluation.eval import main as eval_main
 from lerobot_crowdnav.rl import finetune as ft
 from lerobot_crowdnav.rl.config import DiffusionPPOConfig
 from lerobot_crowdnav.rl.dppo import CRITIC_FILE, ValueHead, load_agent, transition_log_prob
 from lerobot_crowdnav.rl.loop import Collector, Columns, update
 from lerobot_crowdnav.rl.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
+from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 
 from conftest import make_tiny_checkpoint, small_pdpo_config
 

@@ -25,9 +25,9 @@ from lerobot.processor.converters import policy_action_to_transition, transition
 from lerobot.scripts.lerobot_eval import eval_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig
+from lerobot_crowdnav.sim.engine import EVENT_NAMES
 from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 from lerobot_crowdnav.sim.lerobot_env import CrowdNavEnvConfig
-from lerobot_crowdnav.sim.engine import EVENT_NAMES
 
 TEST_SEED0 = SEED_SPLITS["test"][0]
 LEROBOT_EVAL = Path(sys.executable).parent / "lerobot-eval"

@@ -9,6 +9,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.engine import CrowdSim, WALL_COLLISION, _humans_orca, _make_scratch, make_params
 from lerobot_crowdnav.sim.orca import (
     bounding_box,
     compute_new_velocity,
@@ -16,7 +17,6 @@ from lerobot_crowdnav.sim.orca import (
     linear_program3,
     make_obstacles,
 )
-from lerobot_crowdnav.sim.engine import CrowdSim, WALL_COLLISION, _humans_orca, _make_scratch, make_params
 
 DT = 0.25
 NO_OBST = make_obstacles([])
