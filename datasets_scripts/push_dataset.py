@@ -4,7 +4,7 @@
         --repo_id=local/crowdnav_orca --push_to_hub_dir=outputs/hub [--overwrite=true]
 """
 
-from lerobot_crowdnav.hub import main
+from lerobot_crowdnav.data.hub import main
 
 if __name__ == "__main__":
     main()

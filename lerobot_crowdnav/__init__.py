@@ -7,7 +7,7 @@ imports it for you). The compiled simulator is loaded on first use, not at impor
 
 import gymnasium as gym
 
-from .config import PRESETS, SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
+from .sim.config import PRESETS, SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
 
 __all__ = ["CrowdSimConfig", "PRESETS", "SEED_SPLITS", "TASKS", "split_seeds"]
 __version__ = "0.1.0"
@@ -19,8 +19,8 @@ def _register() -> None:
         if env_id not in gym.registry:
             gym.register(
                 id=env_id,
-                entry_point="lerobot_crowdnav.envs:CrowdNavEnv",
-                vector_entry_point="lerobot_crowdnav.envs:CrowdNavVectorEnv",
+                entry_point="lerobot_crowdnav.sim.envs:CrowdNavEnv",
+                vector_entry_point="lerobot_crowdnav.sim.envs:CrowdNavVectorEnv",
                 kwargs={"task": task},
                 disable_env_checker=False,
             )

@@ -1,8 +1,11 @@
 """What every command-line entry point of the project shares: draccus parsing (``--help``,
-``--config_path``) and bad input reported as one ``error: ...`` line instead of a traceback."""
+``--config_path``), bad input reported as one ``error: ...`` line instead of a traceback, and the
+machine description that timed outputs (metrics, benchmark, report) record."""
 
 from __future__ import annotations
 
+import os
+import platform
 import sys
 from collections.abc import Callable
 from subprocess import CalledProcessError
@@ -29,3 +32,13 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
         if interrupted is None:
             raise
         raise SystemExit(f"interrupted: {interrupted}") from None
+
+
+def machine_description() -> str:
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{model}, {os.cpu_count()} logical cores"

@@ -23,7 +23,7 @@ import torch
 from safetensors.torch import load_file
 
 from .cli import run_cli
-from .dataset import COLLECTION_FILE
+from .data.dataset import COLLECTION_FILE
 from .fault import ENV
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,7 +89,7 @@ def check_partial_dataset(root: Path) -> None:
 
 def collect_case(work: Path, keep: str, point: str, count: int, reference: Path, episodes: int,
                  batch_size: int) -> list[str]:
-    from .collect import main as collect_main
+    from .data.collect import main as collect_main
 
     root = work / f"collect_{keep}_{point}_{count}"
     argv = collect_argv(root, keep, episodes, batch_size)
@@ -161,11 +161,11 @@ def finetune_differences(a: Path, b: Path) -> list[str]:
 
 
 def finetune_case(work: Path, pretrained: Path, point: str, count: int, reference: Path, env_steps: int) -> list[str]:
-    from .finetune import main as finetune_main
+    from .rl.finetune import main as finetune_main
 
     out = work / f"finetune_{point}_{count}"
     argv = finetune_argv(pretrained, out, env_steps)
-    run_killed(["-m", "lerobot_crowdnav.finetune", *argv], point, count)
+    run_killed(["-m", "lerobot_crowdnav.rl.finetune", *argv], point, count)
     check_last_checkpoint(out)
     finetune_main([*argv, "--resume=true"])
     return finetune_differences(out, reference)
@@ -179,7 +179,7 @@ def tree(root: Path) -> dict[str, bytes]:
 def hub_case(work: Path, kind: str, source: Path, old_source: Path, point: str, count: int) -> list[str]:
     """Push ``old_source``, then kill a push of ``source`` over it: the repository must be the old
     one or the new one, whole; a rerun of the push gives the new one."""
-    from .hub import main as push_main
+    from .data.hub import main as push_main
 
     hub = work / f"hub_{kind}_{point}_{count}"
     repo_id = f"local/fault_{kind}"
@@ -187,7 +187,7 @@ def hub_case(work: Path, kind: str, source: Path, old_source: Path, point: str, 
     push_main([*argv, f"--root={old_source}"])
     target = hub / ("datasets" if kind == "dataset" else "models") / repo_id
     old = tree(target)
-    run_killed(["-m", "lerobot_crowdnav.hub", *argv, f"--root={source}"], point, count)
+    run_killed(["-m", "lerobot_crowdnav.data.hub", *argv, f"--root={source}"], point, count)
     seen = tree(target)
     push_main([*argv, f"--root={source}"])
     new = tree(target)
@@ -235,8 +235,8 @@ class FaultInjectionConfig:
 
 
 def run_all(cfg: FaultInjectionConfig) -> dict[str, list[str]]:
-    from .collect import main as collect_main
-    from .finetune import main as finetune_main
+    from .data.collect import main as collect_main
+    from .rl.finetune import main as finetune_main
     from .pipeline import main as pipeline_main
 
     work = Path(cfg.work_dir)

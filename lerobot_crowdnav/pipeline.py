@@ -41,7 +41,8 @@ from pathlib import Path
 import draccus
 
 from .cli import run_cli
-from .config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
+from .evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
+from .sim.config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
 
 SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
 TITLE = {"BoundedCrowdNav-v0": "Bounded CrowdNav", "CrowdNav-v0": "original CrowdNav"}
@@ -129,21 +130,22 @@ class Pipeline:
         cfg.validate()
         self.cfg = cfg
         self.root = cfg.root
-        self.commands: dict[str, list[str]] = {}
-        self.timings: dict[str, float] = {}
+        self.stages: dict[str, Stage] = {}  # this invocation's stages, in order
         self.device = cfg.device
 
     # -- helpers -------------------------------------------------------------------------------
-    def _stage(self, name: str, argv: list[str], done: bool, run) -> None:
-        """Record the stage's command; run it unless its output is complete."""
-        self.commands[name] = argv
+    def _stage(self, name: str, argv: list[str], done: bool, run) -> Stage:
+        """Run the stage unless its output is complete; record its command (and wall time)."""
         if done:
             print(f"[main] {name}: complete, skipped")
-            return
-        print(f"[main] {name}: {' '.join(argv)}", flush=True)
-        start = time.perf_counter()
-        run()
-        self.timings[name] = time.perf_counter() - start
+            stage = Stage(name, argv)
+        else:
+            print(f"[main] {name}: {' '.join(argv)}", flush=True)
+            start = time.perf_counter()
+            run()
+            stage = Stage(name, argv, time.perf_counter() - start)
+        self.stages[name] = stage
+        return stage
 
     def _env_flags(self, task: str) -> list[str]:
         return [f"--env.task={task}", f"--env.preset={self.cfg.preset}"]
@@ -161,8 +163,8 @@ class Pipeline:
         return self.root / "finetune" / f"{SHORT[task]}_h{h}_s{seed}"
 
     # -- stages --------------------------------------------------------------------------------
-    def collect(self, task: str) -> None:
-        from .collect import main as collect_main
+    def collect(self, task: str) -> Stage:
+        from .data.collect import main as collect_main
 
         root = self.dataset_root(task)
         info = root / "meta" / "info.json"
@@ -171,7 +173,7 @@ class Pipeline:
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
                 f"--repo_id={self.repo_id(task)}", f"--root={root}"]
         resume = ["--resume=true"] if root.exists() else []
-        self._stage(f"collect {SHORT[task]}", argv, done, lambda: collect_main(argv[2:] + resume))
+        return self._stage(f"collect {SHORT[task]}", argv, done, lambda: collect_main(argv[2:] + resume))
 
     def bc_steps(self, task: str) -> int:
         if self.cfg.bc_epochs <= 0:
@@ -179,7 +181,7 @@ class Pipeline:
         frames = json.loads((self.dataset_root(task) / "meta" / "info.json").read_text())["total_frames"]
         return math.ceil(self.cfg.bc_epochs * frames / self.cfg.bc_batch_size)
 
-    def pretrain(self, task: str, h: int, seed: int) -> None:
+    def pretrain(self, task: str, h: int, seed: int) -> Stage:
         out = self.train_dir(task, h, seed)
         steps = self.bc_steps(task)
         last = out / "checkpoints" / "last"
@@ -203,10 +205,10 @@ class Pipeline:
             cmd[0] = str(Path(sys.executable).parent / "lerobot-train")
             subprocess.run(cmd, check=True)
 
-        self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, done, run)
+        return self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, done, run)
 
-    def finetune(self, task: str, h: int, seed: int) -> None:
-        from .finetune import main as finetune_main
+    def finetune(self, task: str, h: int, seed: int) -> Stage:
+        from .rl.finetune import main as finetune_main
 
         out = self.finetune_dir(task, h, seed)
         saved = out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
@@ -220,7 +222,7 @@ class Pipeline:
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
-        self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
+        return self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
 
     @property
     def main_horizon(self) -> int:
@@ -246,8 +248,8 @@ class Pipeline:
     def eval_dir(self, task: str, name: str) -> Path:
         return self.root / "eval" / SHORT[task] / name
 
-    def evaluate(self, task: str, ev: Evaluation) -> None:
-        from .eval import main as eval_main
+    def evaluate(self, task: str, ev: Evaluation) -> Stage:
+        from .evaluation.eval import main as eval_main
 
         out = self.eval_dir(task, ev.name)
         metrics = out / "metrics.json"
@@ -259,15 +261,15 @@ class Pipeline:
                 f"--output_dir={out}", "--overwrite=true"]
         done = (not self.cfg.rerun_eval and metrics.exists()
                 and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
-        self._stage(f"eval {SHORT[task]} {ev.name}", argv, done, lambda: eval_main(argv[1:]))
+        return self._stage(f"eval {SHORT[task]} {ev.name}", argv, done, lambda: eval_main(argv[1:]))
 
     def push(self, task: str) -> None:
-        from .hub import push_dataset_to_dir, push_policy_to_dir
+        from .data.hub import push_dataset_to_dir, push_policy_to_dir
 
         hub = self.root / "hub"
         repo = self.repo_id(task)
         target = hub / "datasets" / repo
-        argv = ["python", "-m", "lerobot_crowdnav.hub", "--kind=dataset", f"--root={self.dataset_root(task)}",
+        argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=dataset", f"--root={self.dataset_root(task)}",
                 f"--repo_id={repo}", f"--push_to_hub_dir={hub}", "--overwrite=true"]
         self._stage(f"push dataset {SHORT[task]}", argv, target.exists(),
                     lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
@@ -276,16 +278,16 @@ class Pipeline:
             policy_repo = f"{self.cfg.hub_org}/pdpo_{SHORT[task]}_h{h}"
             pretrained = ev.policy
             metrics = self.eval_dir(task, ev.name) / "metrics.json"
-            argv = ["python", "-m", "lerobot_crowdnav.hub", "--kind=policy", f"--root={pretrained}",
+            argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={pretrained}",
                     f"--repo_id={policy_repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
             self._stage(f"push policy {SHORT[task]} H={h}", argv, (hub / "models" / policy_repo).exists() and not self.cfg.rerun_eval,
                         lambda p=pretrained, r=policy_repo, m=metrics: push_policy_to_dir(p, r, hub, True, m))
 
-    def figures(self, task: str) -> dict[str, Path]:
-        from .figures import record_snapshots
-        from .plots import plot_finetune_curves, plot_multimodality, plot_storyboard
+    def figures(self, task: str) -> Stage:
+        from .evaluation.figures import record_snapshots
+        from .evaluation.plots import plot_finetune_curves, plot_multimodality, plot_storyboard
 
-        out = self.root / "figures" / SHORT[task]
+        out = self.figures_dir(task)
         seed = self.cfg.seeds[0]
         h_main = self.main_horizon
         policy = self.finetuned(task, h_main, seed).policy
@@ -293,7 +295,7 @@ class Pipeline:
         paths = {"storyboard": out / "storyboard.png", "multimodality": out / "multimodality.png",
                  "curves": out / "finetune_curves.png"}
         steps = ",".join(map(str, self.cfg.figure_steps))
-        argv = ["python", "-m", "lerobot_crowdnav.figures", f"--policy.path={policy}", *self._env_flags(task),
+        argv = ["python", "-m", "lerobot_crowdnav.evaluation.figures", f"--policy.path={policy}", *self._env_flags(task),
                 f"--seed={episode_seed}", f"--steps={steps}", f"--n_samples={self.cfg.figure_samples}", f"--output_dir={out}"]
 
         def run() -> None:
@@ -313,28 +315,42 @@ class Pipeline:
                 runs[label] = [json.loads(line) for line in progress.read_text().splitlines()]
             plot_finetune_curves(runs, paths["curves"])
 
-        self._stage(f"figures {SHORT[task]}", argv, all(p.exists() for p in paths.values()) and not self.cfg.rerun_eval, run)
-        return paths
+        return self._stage(f"figures {SHORT[task]}", argv, all(p.exists() for p in paths.values()) and not self.cfg.rerun_eval, run)
+
+    def figures_dir(self, task: str) -> Path:
+        return self.root / "figures" / SHORT[task]
 
     # -- the whole job -------------------------------------------------------------------------
     def run(self) -> Path:
         start = time.perf_counter()
         self.root.mkdir(parents=True, exist_ok=True)
         (self.root / "main_config.json").write_text(json.dumps(draccus.encode(self.cfg), indent=2, default=str))
+        tasks = []
         for task in self.cfg.tasks:
             self.collect(task)
+            trained: dict[tuple[int, int], tuple[Stage, Stage]] = {}
             for seed in self.cfg.seeds:
                 for h in self.cfg.horizons:
-                    self.pretrain(task, h, seed)
-                    self.finetune(task, h, seed)
-            for _, evals in self.methods(task):
+                    trained[h, seed] = self.pretrain(task, h, seed), self.finetune(task, h, seed)
+            methods = []
+            for label, evals in self.methods(task):
+                evaluated = []
                 for ev in evals:
-                    self.evaluate(task, ev)
+                    stage = self.evaluate(task, ev)
+                    pretrain, finetune = trained[ev.horizon, ev.seed] if ev.policy is not None else (None, None)
+                    evaluated.append(Evaluated(ev.name, self.eval_dir(task, ev.name), stage, ev.policy, ev.seed,
+                                               pretrain, finetune if ev.finetuned else None))
+                methods.append(Method(label, evaluated))
             self.push(task)
-            self.figures(task)
-        from .report import write_report
-
-        report = write_report(self, time.perf_counter() - start)
+            figures = self.figures(task)
+            bounded = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().bounded
+            tasks.append(TaskResults(task, TITLE[task], SHORT[task], methods, self.figures_dir(task), figures,
+                                     boundary_audit=not bounded))
+        c = self.cfg
+        budget = Budget(c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps,
+                        list(c.seeds), c.test_episodes)
+        report = write_report(ReportInputs(self.root, budget, tasks, list(self.stages.values()),
+                                           time.perf_counter() - start))
         print(f"[main] report: {report}")
         return report
 

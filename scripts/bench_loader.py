@@ -134,7 +134,7 @@ def main(argv=None) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     import lerobot
-    from lerobot_crowdnav.eval import machine_description
+    from lerobot_crowdnav.cli import machine_description
 
     delta = {"action": [0.0, 0.25, 0.5, 0.75, 1.0]}
     ds = make_dataset(args, delta)

@@ -18,9 +18,9 @@ from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.processor import NormalizerProcessorStep
 
-from lerobot_crowdnav.collect import main as collect_main
-from lerobot_crowdnav.envs import CrowdNavEnv
-from lerobot_crowdnav.hub import main as push_main
+from lerobot_crowdnav.data.collect import main as collect_main
+from lerobot_crowdnav.data.hub import main as push_main
+from lerobot_crowdnav.sim.envs import CrowdNavEnv
 
 REPO = "local/test_orca"
 H = 5  # PDPO's action chunk

@@ -9,9 +9,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import lerobot_crowdnav  # noqa: F401  (registers the envs)
-from lerobot_crowdnav.config import SEED_SPLITS, CrowdSimConfig, split_seeds
-from lerobot_crowdnav.envs import CrowdNavEnv, CrowdNavVectorEnv, structured
-from lerobot_crowdnav.sim import (
+from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
+from lerobot_crowdnav.sim.engine import (
     HUMAN_COLLISION,
     RUNNING,
     SUCCESS,
@@ -19,6 +18,7 @@ from lerobot_crowdnav.sim import (
     WALL_COLLISION,
     CrowdSim,
 )
+from lerobot_crowdnav.sim.envs import CrowdNavEnv, CrowdNavVectorEnv, structured
 
 FAR = 1000.0
 

@@ -1,4 +1,4 @@
-"""The evaluation CLI, ``lerobot_crowdnav.eval`` (``lerobot-crowdnav-eval``)."""
+"""The evaluation CLI, ``lerobot_crowdnav.evaluation.eval`` (``lerobot-crowdnav-eval``)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import sys
 import pytest
 from PIL import Image
 
-from lerobot_crowdnav.config import split_seeds
-from lerobot_crowdnav.eval import EvalSettings, main
+from lerobot_crowdnav.evaluation.eval import EvalSettings, main
+from lerobot_crowdnav.sim.config import split_seeds
 
 TASKS = ("BoundedCrowdNav-v0", "CrowdNav-v0")
 POLICIES = ("orca", "straight")
@@ -140,7 +140,7 @@ def test_val_split_takes_val_seeds(tmp_path, capsys):
 
 
 def test_module_help_mentions_every_setting():
-    res = subprocess.run([sys.executable, "-m", "lerobot_crowdnav.eval", "--help"],
+    res = subprocess.run([sys.executable, "-m", "lerobot_crowdnav.evaluation.eval", "--help"],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     for f in dataclasses.fields(EvalSettings):
@@ -183,7 +183,7 @@ def test_undefined_metrics_are_null_in_strict_json(tmp_path, capsys):
 def test_shipped_eval_configs_parse(name):
     import draccus
 
-    from lerobot_crowdnav.eval import EvalConfig
+    from lerobot_crowdnav.evaluation.eval import EvalConfig
 
     cfg = draccus.parse(EvalConfig, config_path=f"configs/eval/{name}.yaml", args=[])
     sim = cfg.env.resolve()
@@ -198,7 +198,7 @@ def test_shipped_eval_configs_parse(name):
 
 
 def test_baselines_command_writes_tables_and_resumes(tmp_path, capsys):
-    from lerobot_crowdnav.baselines import main as baselines_main
+    from lerobot_crowdnav.evaluation.baselines import main as baselines_main
 
     args = ["--n_episodes=4", "--batch_size=4", "--only=[crowdnavpp_orca_baseline]", f"--output_dir={tmp_path}"]
     baselines_main(args)

@@ -20,7 +20,7 @@ from lerobot.datasets.dataset_reader import DatasetReader
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_crowdnav.data import fast_loader
-from lerobot_crowdnav.collect import main as collect_main
+from lerobot_crowdnav.data.collect import main as collect_main
 
 REPO = "local/test_fast_loader"
 CHUNK = {"action": [k / 4 for k in range(5)]}  # PDPO's action chunk

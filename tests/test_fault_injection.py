@@ -9,8 +9,8 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_crowdnav import fault_injection as fi
-from lerobot_crowdnav.collect import main as collect_main
-from lerobot_crowdnav.finetune import main as finetune_main
+from lerobot_crowdnav.data.collect import main as collect_main
+from lerobot_crowdnav.rl.finetune import main as finetune_main
 
 from conftest import make_tiny_checkpoint
 

@@ -1,5 +1,5 @@
 """The action-chunk figures: drawing functions on hand-made scenes (size, content, colours), and
-``lerobot_crowdnav.figures`` (record_snapshots and the CLI) end to end on a tiny PDPO checkpoint."""
+``lerobot_crowdnav.evaluation.figures`` (record_snapshots and the CLI) end to end on a tiny PDPO checkpoint."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import pytest
 from conftest import make_tiny_checkpoint
 from PIL import Image
 
-from lerobot_crowdnav import figures
-from lerobot_crowdnav.config import CrowdSimConfig
-from lerobot_crowdnav.envs import CrowdNavEnv, structured
-from lerobot_crowdnav.plots import chunk_positions, plot_multimodality, plot_storyboard
+from lerobot_crowdnav.evaluation import figures
+from lerobot_crowdnav.evaluation.plots import chunk_positions, plot_multimodality, plot_storyboard
+from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.envs import CrowdNavEnv, structured
 
 SENSING, DT = 6.0, 0.25
 # Pixel sizes: panels of 3.2 x 3.4 in, a 0.6 in legend band, 0.3 in for a title, at 150 dpi.

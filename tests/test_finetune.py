@@ -16,13 +16,13 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_policy_pdpo import PDPOPolicy
 
-from lerobot_crowdnav.envs import CrowdNavVectorEnv
-from lerobot_crowdnav.eval import main as eval_main
+from lerobot_crowdnav.evaluation.eval import main as eval_main
 from lerobot_crowdnav.rl import finetune as ft
 from lerobot_crowdnav.rl.config import DiffusionPPOConfig
 from lerobot_crowdnav.rl.dppo import CRITIC_FILE, ValueHead, load_agent, transition_log_prob
 from lerobot_crowdnav.rl.loop import Collector, Columns, update
 from lerobot_crowdnav.rl.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
+from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 
 from conftest import make_tiny_checkpoint, small_pdpo_config
 
@@ -242,7 +242,7 @@ def test_accelerate_two_processes_run_one_iteration(pretrained, tmp_path):
     out = tmp_path / "ddp"
     # accelerate's DDP launcher; --device=cpu makes the processes join a gloo process group
     cmd = [str(BIN / "accelerate"), "launch", "--multi_gpu", "--num_processes=2", "--num_machines=1",
-           "--mixed_precision=no", "--dynamo_backend=no", "-m", "lerobot_crowdnav.finetune",
+           "--mixed_precision=no", "--dynamo_backend=no", "-m", "lerobot_crowdnav.rl.finetune",
            f"--policy.path={pretrained}", f"--output_dir={out}", *TINY_RUN, "--env_steps=64", "--device=cpu"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)

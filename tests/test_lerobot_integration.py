@@ -24,10 +24,10 @@ from lerobot.processor import PolicyProcessorPipeline
 from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
 from lerobot.scripts.lerobot_eval import eval_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
-from lerobot_crowdnav.config import SEED_SPLITS, CrowdSimConfig
-from lerobot_crowdnav.envs import CrowdNavVectorEnv
-from lerobot_crowdnav.lerobot_env import CrowdNavEnvConfig
-from lerobot_crowdnav.sim import EVENT_NAMES
+from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig
+from lerobot_crowdnav.sim.engine import EVENT_NAMES
+from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
+from lerobot_crowdnav.sim.lerobot_env import CrowdNavEnvConfig
 
 TEST_SEED0 = SEED_SPLITS["test"][0]
 LEROBOT_EVAL = Path(sys.executable).parent / "lerobot-eval"
@@ -43,17 +43,17 @@ def _run(cmd: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
 
 def test_plugin_discovery_registers_crowdnav_env_type():
     """lerobot's own discovery of `lerobot_env_*` distributions registers `crowdnav`, in a clean
-    interpreter that never imported lerobot_crowdnav.lerobot_env itself."""
+    interpreter that never imported lerobot_crowdnav.sim.lerobot_env itself."""
     script = textwrap.dedent("""
         import sys
         from lerobot.envs.configs import EnvConfig
         from lerobot.utils.import_utils import register_third_party_plugins
-        assert "lerobot_crowdnav.lerobot_env" not in sys.modules, "imported too early"
+        assert "lerobot_crowdnav.sim.lerobot_env" not in sys.modules, "imported too early"
         assert "crowdnav" not in EnvConfig.get_known_choices(), "registered without the plugin"
         register_third_party_plugins()
         assert "crowdnav" in EnvConfig.get_known_choices(), sorted(EnvConfig.get_known_choices())
         cls = EnvConfig.get_choice_class("crowdnav")
-        assert cls.__module__ == "lerobot_crowdnav.lerobot_env", cls.__module__
+        assert cls.__module__ == "lerobot_crowdnav.sim.lerobot_env", cls.__module__
         assert cls.__name__ == "CrowdNavEnvConfig", cls.__name__
         assert "lerobot_env_crowdnav" in sys.modules
         print("OK crowdnav", cls().type)

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from lerobot_crowdnav.config import CrowdSimConfig
-from lerobot_crowdnav.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
-from lerobot_crowdnav.sim import CrowdSim
+from lerobot_crowdnav.evaluation.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
+from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.engine import CrowdSim
 
 
 def rec(seed, event, steps, path, intr=0, intr_sum=0.0, oob=False):

@@ -8,15 +8,15 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from lerobot_crowdnav.config import CrowdSimConfig
-from lerobot_crowdnav.orca import (
+from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.engine import CrowdSim, WALL_COLLISION, _humans_orca, _make_scratch, make_params
+from lerobot_crowdnav.sim.orca import (
     bounding_box,
     compute_new_velocity,
     linear_program2,
     linear_program3,
     make_obstacles,
 )
-from lerobot_crowdnav.sim import CrowdSim, WALL_COLLISION, _humans_orca, _make_scratch, make_params
 
 DT = 0.25
 NO_OBST = make_obstacles([])
@@ -225,7 +225,7 @@ def test_agent_pulled_outside_box_stays_inside(start, target):
 def test_wall_aware_orca_robot_never_touches_a_wall_in_bounded():
     """Over many Bounded episodes the wall-aware ORCA robot collides with a wall only at the first
     step (episodes that start within one robot radius of a wall, a faithful quirk of the spawn)."""
-    from lerobot_crowdnav.envs import CrowdNavVectorEnv
+    from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 
     env = CrowdNavVectorEnv(64, robot_policy="orca", compute_intrusion=False, orca_robot_wall_aware=True)
     env.reset(seed=10_000)

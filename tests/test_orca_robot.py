@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from lerobot_crowdnav.config import CrowdSimConfig, split_seeds
-from lerobot_crowdnav.orca import compute_new_velocity, make_obstacles
-from lerobot_crowdnav.sim import DUMMY_POS, DUMMY_RADIUS, RUNNING, CrowdSim, _humans_orca, _make_scratch
+from lerobot_crowdnav.sim.config import CrowdSimConfig, split_seeds
+from lerobot_crowdnav.sim.engine import DUMMY_POS, DUMMY_RADIUS, RUNNING, CrowdSim, _humans_orca, _make_scratch
+from lerobot_crowdnav.sim.orca import compute_new_velocity, make_obstacles
 
 NO_OBST = make_obstacles([])
 

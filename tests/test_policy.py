@@ -19,7 +19,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_processors
 from lerobot_policy_pdpo.processor_pdpo import crowd_state_stats
 
-from lerobot_crowdnav.collect import main as collect_main
+from lerobot_crowdnav.data.collect import main as collect_main
 from lerobot_crowdnav.fault_injection import ROOT, run_killed
 
 REPO = "local/test_pdpo"
@@ -241,14 +241,14 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
     assert len(info["per_task"][0]["metrics"]["successes"]) == 2
 
     # lerobot-crowdnav-eval with the checkpoint: full metrics on test seeds.
-    from lerobot_crowdnav.eval import main as eval_main
-    from lerobot_crowdnav.hub import push_policy_to_dir
+    from lerobot_crowdnav.evaluation.eval import main as eval_main
+    from lerobot_crowdnav.data.hub import push_policy_to_dir
 
     eval_main([f"--policy.path={ckpt}", "--eval.n_episodes=4", "--eval.batch_size=2",
                f"--output_dir={tmp_path / 'crowdnav_eval'}"])
     metrics = json.loads((tmp_path / "crowdnav_eval" / "metrics.json").read_text())
     assert metrics["n_episodes"] == 4 and metrics["policy"] == "train@000020"
-    from lerobot_crowdnav.eval import LearnedPolicy
+    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
 
     with_ema, raw = LearnedPolicy(ckpt, "cpu", 269), LearnedPolicy(ckpt, "cpu", 269, use_ema=False)  # --policy.use_ema
     assert with_ema.policy.sampling_actor() is with_ema.policy.ema

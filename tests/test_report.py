@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from lerobot_crowdnav import fault_injection as fi
+from lerobot_crowdnav.evaluation.report import Row, boundary_audit, csv_table, markdown_table, parameter_table
 from lerobot_crowdnav.pipeline import main as pipeline_main
-from lerobot_crowdnav.report import Row, boundary_audit, csv_table, markdown_table, parameter_table
 
 
 

@@ -1,2 +1,4 @@
-"""Data side: reading our LeRobotDatasets fast (``fast_loader``). The ORCA demonstration writer
-(``collect``, ``dataset``) and hub I/O (``hub``) move here after the issue-11 merge."""
+"""The data layer: ``dataset`` (the ORCA demonstration writer, resumable) <- ``collect`` (the
+collection CLI); ``hub`` (hub-format dataset and policy repositories); ``fast_loader`` (opt-in
+fast reads of our LeRobotDatasets, installed by PDPO training). Imports nothing at package import.
+"""

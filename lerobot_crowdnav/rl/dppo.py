@@ -27,7 +27,7 @@ from lerobot_policy_pdpo.modeling_pdpo import DiffusionActor, PDPOPolicy, mlp
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
-from ..config import CrowdSimConfig
+from ..sim.config import CrowdSimConfig
 from .agent import Scores, Step
 from .config import DiffusionPPOConfig
 

@@ -3,7 +3,7 @@
     lerobot-crowdnav-finetune --policy.path=outputs/train/bounded_pdpo/checkpoints/last/pretrained_model \\
         --env.task=BoundedCrowdNav-v0 --env_steps=12000000 --output_dir=outputs/finetune/bounded_pdpo
     lerobot-crowdnav-finetune --config_path=configs/finetune/bounded_pdpo.yaml [--resume=true]
-    accelerate launch --num_processes=2 -m lerobot_crowdnav.finetune ...   # DDP, one env batch per process
+    accelerate launch --num_processes=2 -m lerobot_crowdnav.rl.finetune ...   # DDP, one env batch per process
 
 One iteration: every process collects ``ppo.n_steps`` steps of its ``num_envs`` envs with the
 DPPO agent (rl/dppo.py), then ``ppo.update_epochs`` epochs of minibatch updates (rl/loop.py);
@@ -25,8 +25,8 @@ import torch
 from tqdm import tqdm
 
 from ..cli import run_cli
-from ..config import SEED_SPLITS, CrowdSimConfig
-from ..envs import CrowdNavVectorEnv
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.envs import CrowdNavVectorEnv
 from .checkpoints import Checkpoints, resume_conflicts
 from .config import DiffusionPPOConfig
 from .dppo import check_compatible, load_agent

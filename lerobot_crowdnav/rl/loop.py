@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..sim import EVENT_NAMES
+from ..sim.engine import EVENT_NAMES
 from .config import PPOConfig
 from .ppo import RunningRewardScaler, explained_variance, gae, ppo_losses
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..eval import run_episodes
-from ..metrics import compute_metrics
+from ..evaluation.episodes import run_episodes
+from ..evaluation.metrics import compute_metrics
 from .loop import restart_memory
 
 EVENTS = ("success", "human_collision", "wall_collision", "timeout")

@@ -1,5 +1,5 @@
 """Registers lerobot-crowdnav's ``crowdnav`` EnvConfig when lerobot loads its plugins."""
 
-from lerobot_crowdnav.lerobot_env import CrowdNavEnvConfig
+from lerobot_crowdnav.sim.lerobot_env import CrowdNavEnvConfig
 
 __all__ = ["CrowdNavEnvConfig"]

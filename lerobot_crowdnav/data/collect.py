@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import fault
-from .cli import run_cli
-from .config import SEED_SPLITS, CrowdSimConfig
+from .. import fault
+from ..cli import run_cli
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
 from .dataset import DemonstrationWriter, outcome_counts
 from .hub import dataset_card, push_dataset_to_dir, split_repo_id
-from .sim import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
+from ..sim.engine import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
 
 KEEP = ("all", "success")
 

@@ -40,10 +40,10 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.feature_utils import get_hf_features_from_features
 from lerobot.datasets.io_utils import load_info, write_info, write_stats
 
-from . import fault
-from .config import CrowdSimConfig
-from .layout import ROBOT_DIM
-from .sim import EVENT_NAMES
+from .. import fault
+from ..sim.config import CrowdSimConfig
+from ..layout import ROBOT_DIM
+from ..sim.engine import EVENT_NAMES
 
 FPS = 4
 TASK = "Navigate to the goal through the crowd."

@@ -6,14 +6,12 @@ card with its YAML header), loadable with ``LeRobotDataset("<org>/<name>", root=
 processors, ``train_config.json``, ``README.md`` model card), loadable with ``--policy.path``. A push
 is written aside and moved into place, so a failed push never leaves a half-written repository.
 
-Standalone: ``python -m lerobot_crowdnav.hub --kind=dataset|policy --root=<dataset or
+Standalone: ``python -m lerobot_crowdnav.data.hub --kind=dataset|policy --root=<dataset or
 pretrained_model> --repo_id=<org>/<name> --push_to_hub_dir=<dir> [--overwrite=true]
 [--metrics=<metrics.json>]``.
 """
 
 from __future__ import annotations
-
-import math
 
 import shutil
 from dataclasses import dataclass
@@ -21,9 +19,9 @@ from pathlib import Path
 
 from lerobot.datasets.utils import create_lerobot_dataset_card
 
-from . import fault
-from .cli import run_cli
-from .config import CrowdSimConfig
+from .. import fault
+from ..cli import run_cli
+from ..sim.config import CrowdSimConfig
 from .dataset import FPS
 
 REPO_IGNORE = ("images", "videos", "*.tmp")  # lerobot's push_to_hub skips images/ (no videos here)
@@ -100,34 +98,14 @@ def split_repo_id(repo_id: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
-def parameter_counts(weights: Path) -> dict[str, int]:
-    """Actor and critic sizes of a PDPO checkpoint: the actor in ``model.safetensors``, the
-    critic in ``critic.safetensors`` beside it (fine-tuned; none for BC). Checkpoints from before
-    the actor/critic split hold ``encoder``/``denoiser``/``value`` in ``model.safetensors``."""
-    from safetensors import safe_open
-
-    counts = {"actor": 0, "critic": 0}
-    critic_file = Path(weights).with_name("critic.safetensors")
-    for path, critic_prefix in ((Path(weights), "value."), (critic_file, "")):
-        if not path.exists():
-            continue
-        with safe_open(str(path), "pt") as f:
-            for key in f.keys():
-                numel = math.prod(f.get_slice(key).get_shape())
-                if key.startswith(("actor.", "encoder.", "denoiser.")):
-                    counts["actor"] += numel
-                elif key.startswith(critic_prefix):
-                    counts["critic"] += numel
-    return counts
-
-
 def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
     """Model card: architecture, training data and budget, parameter counts, evaluation table."""
     import json
 
     from huggingface_hub import ModelCard, ModelCardData
 
-    from .metrics import markdown_header, markdown_row
+    from ..evaluation.metrics import markdown_header, markdown_row
+    from ..evaluation.parameters import parameter_counts
 
     config = json.loads((pretrained / "config.json").read_text())
     train = json.loads((pretrained / "train_config.json").read_text()) if (pretrained / "train_config.json").exists() else {}

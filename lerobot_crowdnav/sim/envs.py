@@ -27,7 +27,7 @@ Starting state
     Robot start and goal ~ U(-6, 6)^2 at least 8 m apart; 20 humans on the circle of radius
     6 sqrt(2) (positive noise in [0, 2)), goals antipodal; all at rest.
 Seeds
-    One seed, one episode (see ``lerobot_crowdnav.config.SEED_SPLITS``).
+    One seed, one episode (see ``lerobot_crowdnav.sim.config.SEED_SPLITS``).
 
 Version history: v0, first release.
 """
@@ -43,8 +43,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .config import SEED_SPLITS, CrowdSimConfig
-from .layout import ROBOT_DIM, SELF_DIM
-from .sim import EVENT_NAMES, RUNNING, SUCCESS, TIMEOUT, CrowdSim
+from ..layout import ROBOT_DIM, SELF_DIM
+from .engine import EVENT_NAMES, RUNNING, SUCCESS, TIMEOUT, CrowdSim
 
 ROBOT_POLICIES = ("orca", "straight")
 

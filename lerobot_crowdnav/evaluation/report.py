@@ -1,4 +1,5 @@
-"""Benchmark tables from ``metrics.json`` files (of ``lerobot-crowdnav-eval``), in markdown and CSV.
+"""Benchmark tables from ``metrics.json`` files (of ``lerobot-crowdnav-eval``), in markdown and CSV,
+and the main job's report from typed inputs (:class:`ReportInputs`, built by ``pipeline.py``).
 
 A table row is one method; each cell is the mean over the metrics files of that method (one per
 training seed) and, where there are several, ``mean +- std`` (population std). Rates are shown
@@ -14,7 +15,9 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import SEED_SPLITS
+from ..cli import machine_description
+from ..sim.config import SEED_SPLITS
+from .parameters import parameter_counts
 
 # column -> (metrics key, scale, digits, header)
 COLUMNS = {
@@ -119,60 +122,128 @@ def _rel(path: Path, root: Path) -> str:
     return str(Path(path).relative_to(root))
 
 
-def write_report(pipeline, wall_time_s: float) -> Path:
-    """``<run>/report.md`` and ``<run>/tables/*.csv`` from the metrics files of a pipeline run
-    (:class:`lerobot_crowdnav.pipeline.Pipeline`); every number with its command, config and seed."""
-    from .eval import machine_description
-    from .hub import parameter_counts
-    from .pipeline import SHORT, TITLE
+@dataclass(frozen=True)
+class Budget:
+    """The run's budget, shown next to the paper's."""
 
-    cfg, root = pipeline.cfg, pipeline.root
+    run: str
+    preset: str
+    demos: int
+    bc_steps: int
+    bc_epochs: float
+    bc_batch_size: int
+    ft_env_steps: int
+    seeds: list[int]
+    test_episodes: int
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of the run: its name, the command a user would type and, when it ran in this
+    invocation, its wall time (None: complete, skipped)."""
+
+    name: str
+    argv: list[str]
+    wall_time_s: float | None = None
+
+
+@dataclass(frozen=True)
+class Evaluated:
+    """One evaluation in a table row: its ``eval_dir`` (metrics.json, videos/) and the stages that
+    made it. A built-in policy has no checkpoint; a learned one names its pretraining stage and,
+    fine-tuned (checkpoint ``best``, with ``best.json`` beside it), its fine-tuning stage."""
+
+    name: str
+    eval_dir: Path
+    evaluate: Stage
+    checkpoint: Path | None = None
+    seed: int | None = None
+    pretrain: Stage | None = None
+    finetune: Stage | None = None
+
+
+@dataclass(frozen=True)
+class Method:
+    """A table row: its label and its evaluations, one per training seed."""
+
+    label: str
+    evaluations: list[Evaluated]
+
+
+@dataclass(frozen=True)
+class TaskResults:
+    """One benchmark's section: its rows and its figures (``figures_dir``: storyboard.png,
+    multimodality.png, finetune_curves.png, drawn by the ``figures`` stage)."""
+
+    task: str
+    title: str
+    short: str  # file names: tables/results_<short>.csv
+    methods: list[Method]
+    figures_dir: Path
+    figures: Stage
+    boundary_audit: bool = False  # the original benchmark (no walls): audit leaving the workspace
+
+
+@dataclass(frozen=True)
+class ReportInputs:
+    """Everything the report shows; every path inside ``root``."""
+
+    root: Path
+    budget: Budget
+    tasks: list[TaskResults]
+    stages: list[Stage]  # every stage of this invocation, in order (commands.json)
+    wall_time_s: float
+
+
+def write_report(inputs: ReportInputs) -> Path:
+    """``<root>/report.md``, ``<root>/tables/*.csv`` and ``<root>/commands.json`` from the metrics
+    files of a main-job run; every number with its command, config and seed."""
+    b, root = inputs.budget, inputs.root
     tables = root / "tables"
     tables.mkdir(parents=True, exist_ok=True)
-    cmd = lambda name: " ".join(pipeline.commands[name])  # noqa: E731
+    cmd = lambda stage: " ".join(stage.argv)  # noqa: E731
     lines = [
-        f"# lerobot-crowdnav main job: `{cfg.run}`", "",
-        f"Machine: {machine_description()}. Wall time of the last invocation: {wall_time_s / 60:.1f} min "
+        f"# lerobot-crowdnav main job: `{b.run}`", "",
+        f"Machine: {machine_description()}. Wall time of the last invocation: {inputs.wall_time_s / 60:.1f} min "
         "(stages already complete were skipped; see *Stages* below).", "",
         "## Budget", "",
         "| setting | this run | paper |", "|---|---|---|",
-        f"| ORCA demonstrations per task (successful episodes) | {cfg.demos} | 3,000 |",
-        f"| BC pretraining (lerobot-train, batch {cfg.bc_batch_size}) | "
-        + (f"{cfg.bc_epochs:g} epochs" if cfg.bc_epochs > 0 else f"{cfg.bc_steps} steps") + " | 200 epochs |",
-        f"| diffusion-PPO fine-tuning per policy | {cfg.ft_env_steps:,} env steps | about 12 M env steps |",
-        f"| training seeds | {', '.join(map(str, cfg.seeds))} | n/a |",
-        f"| test episodes per method | {cfg.test_episodes} (seeds {SEED_SPLITS['test'][0]} ...) | 500 |",
-        f"| simulator preset | `{cfg.preset}` | `paper` |", "",
+        f"| ORCA demonstrations per task (successful episodes) | {b.demos} | 3,000 |",
+        f"| BC pretraining (lerobot-train, batch {b.bc_batch_size}) | "
+        + (f"{b.bc_epochs:g} epochs" if b.bc_epochs > 0 else f"{b.bc_steps} steps") + " | 200 epochs |",
+        f"| diffusion-PPO fine-tuning per policy | {b.ft_env_steps:,} env steps | about 12 M env steps |",
+        f"| training seeds | {', '.join(map(str, b.seeds))} | n/a |",
+        f"| test episodes per method | {b.test_episodes} (seeds {SEED_SPLITS['test'][0]} ...) | 500 |",
+        f"| simulator preset | `{b.preset}` | `paper` |", "",
         "Configuration: `main_config.json`; every stage's exact command: `commands.json` and *Stages* below.", "",
     ]
     counts: dict[str, dict[str, int]] = {}
-    for task in cfg.tasks:
-        short = SHORT[task]
+    for t in inputs.tasks:
         rows = []
         notes = []
-        for label, evals in pipeline.methods(task):
-            rows.append(Row(label, [load_metrics(pipeline.eval_dir(task, ev.name) / "metrics.json") for ev in evals]))
-            for ev in evals:
-                notes.append(f"- {label}, `{ev.name}`: `{cmd(f'eval {short} {ev.name}')}`")
-                if ev.policy is None:
+        for method in t.methods:
+            label = method.label
+            rows.append(Row(label, [load_metrics(ev.eval_dir / "metrics.json") for ev in method.evaluations]))
+            for ev in method.evaluations:
+                notes.append(f"- {label}, `{ev.name}`: `{cmd(ev.evaluate)}`")
+                if ev.checkpoint is None:
                     continue
-                trained = f"H={ev.horizon} seed={ev.seed}"
-                if not ev.finetuned:
-                    notes.append(f"  - pretrained by `{cmd(f'pretrain {short} {trained}')}` (checkpoint `last`)")
+                if ev.finetune is None:
+                    notes.append(f"  - pretrained by `{cmd(ev.pretrain)}` (checkpoint `last`)")
                     continue
-                best = json.loads((ev.policy.parent / "best.json").read_text())
-                notes.append(f"  - pretrained by `{cmd(f'pretrain {short} {trained}')}`")
-                notes.append(f"  - fine-tuned by `{cmd(f'finetune {short} {trained}')}`; checkpoint `best` "
+                best = json.loads((ev.checkpoint.parent / "best.json").read_text())
+                notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
+                notes.append(f"  - fine-tuned by `{cmd(ev.finetune)}`; checkpoint `best` "
                              f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
                              + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
-                counts[f"{TITLE[task]}: {label}, seed {ev.seed}"] = parameter_counts(ev.policy / "model.safetensors")
-        (tables / f"results_{short}.csv").write_text(csv_table(rows))
-        lines += [f"## {TITLE[task]}", "",
-                  f"`{task}`, {cfg.test_episodes} test episodes, the same seeds for every method"
-                  + (f"; mean ± std over {len(cfg.seeds)} training seeds" if len(cfg.seeds) > 1 else "") + ". "
-                  f"CSV: `tables/results_{short}.csv`.", "", markdown_table(rows), "",
+                counts[f"{t.title}: {label}, seed {ev.seed}"] = parameter_counts(ev.checkpoint / "model.safetensors")
+        (tables / f"results_{t.short}.csv").write_text(csv_table(rows))
+        lines += [f"## {t.title}", "",
+                  f"`{t.task}`, {b.test_episodes} test episodes, the same seeds for every method"
+                  + (f"; mean ± std over {len(b.seeds)} training seeds" if len(b.seeds) > 1 else "") + ". "
+                  f"CSV: `tables/results_{t.short}.csv`.", "", markdown_table(rows), "",
                   "<details><summary>Provenance of each row</summary>", "", *notes, "", "</details>", ""]
-        if task == "CrowdNav-v0":
+        if t.boundary_audit:
             md, csv_text = boundary_audit(rows)
             (tables / "boundary_audit.csv").write_text(csv_text)
             lines += ["### Boundary audit (original benchmark)", "",
@@ -183,11 +254,10 @@ def write_report(pipeline, wall_time_s: float) -> Path:
     lines += ["## Parameter counts", "", "Actor = crowd encoder + denoiser; critic = value head (the frozen "
               "pretrained copy that runs the first denoising steps of a fine-tuned policy is not counted). "
               "CSV: `tables/parameters.csv`.", "", md, "", "## Figures", ""]
-    for task in cfg.tasks:
-        short = SHORT[task]
-        fig = root / "figures" / short
-        lines += [f"### {TITLE[task]}", "",
-                  f"Action-chunk storyboard (`{cmd(f'figures {short}')}`): robot-centred snapshots of one test "
+    for t in inputs.tasks:
+        fig = t.figures_dir
+        lines += [f"### {t.title}", "",
+                  f"Action-chunk storyboard (`{cmd(t.figures)}`): robot-centred snapshots of one test "
                   "episode; dashed circle = sensing range, blue = humans and their predicted trajectories, "
                   "green = robot, the sampled chunk as a path ending in a red cross.", "",
                   f"![storyboard]({_rel(fig / 'storyboard.png', root)})", "",
@@ -197,21 +267,20 @@ def write_report(pipeline, wall_time_s: float) -> Path:
                   "(lines: training episodes, smoothed; markers: deterministic validation).", "",
                   f"![fine-tuning curves]({_rel(fig / 'finetune_curves.png', root)})", "",
                   "One test episode per method (the first test seed):", ""]
-        for label, evals in pipeline.methods(task):
-            gifs = sorted((pipeline.eval_dir(task, evals[0].name) / "videos").glob("*.gif"))
+        for method in t.methods:
+            gifs = sorted((method.evaluations[0].eval_dir / "videos").glob("*.gif"))
             if gifs:
-                lines.append(f"- {label}: [{gifs[0].name}]({_rel(gifs[0], root)})")
+                lines.append(f"- {method.label}: [{gifs[0].name}]({_rel(gifs[0], root)})")
         lines.append("")
     lines += ["## Stages", "", "| stage | command | wall time of this invocation |", "|---|---|---|"]
-    for name, argv in pipeline.commands.items():
-        t = pipeline.timings.get(name)
-        lines.append(f"| {name} | `{' '.join(argv)}` | {'skipped (complete)' if t is None else f'{t:.0f} s'} |")
+    for stage in inputs.stages:
+        t = stage.wall_time_s
+        lines.append(f"| {stage.name} | `{cmd(stage)}` | {'skipped (complete)' if t is None else f'{t:.0f} s'} |")
     lines += ["", "## Reproduce", "",
               "Rerunning the same `lerobot-crowdnav-main` command skips complete stages; with "
               "`--rerun_eval=true` it evaluates the saved checkpoints again and regenerates identical "
               "tables (evaluation is deterministic: fixed test seeds, policy sampling seed 0).", ""]
-    (root / "commands.json").write_text(json.dumps(pipeline.commands, indent=2))
+    (root / "commands.json").write_text(json.dumps({stage.name: stage.argv for stage in inputs.stages}, indent=2))
     report = root / "report.md"
     report.write_text("\n".join(lines))
     return report
-

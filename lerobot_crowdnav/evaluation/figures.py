@@ -1,6 +1,6 @@
 """The paper's action-chunk figures from a trained policy checkpoint.
 
-    python -m lerobot_crowdnav.figures --policy.path=outputs/train/<run>/checkpoints/last/pretrained_model \\
+    python -m lerobot_crowdnav.evaluation.figures --policy.path=outputs/train/<run>/checkpoints/last/pretrained_model \\
         --env.task=BoundedCrowdNav-v0 --seed=2000000000 --steps=0,4,8,12,16 --n_samples=32 \\
         --output_dir=outputs/figures/<run>
 
@@ -8,7 +8,7 @@ Runs one episode with the PDPO policy replanning every step (receding horizon: s
 execute its first action) and, at the chosen steps, keeps the observation, the executed chunk and
 ``n_samples`` more chunks sampled for the same observation. Writes ``storyboard.png`` (the planned
 path of the executed chunk, step by step) and ``multimodality.png`` (the spread of the sampled
-chunks): see :func:`lerobot_crowdnav.plots.plot_storyboard` and ``plot_multimodality``.
+chunks): see :func:`lerobot_crowdnav.evaluation.plots.plot_storyboard` and ``plot_multimodality``.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
-from .cli import run_cli
-from .config import SEED_SPLITS, CrowdSimConfig
-from .envs import CrowdNavEnv
-from .eval import LearnedPolicy
+from ..cli import run_cli
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.envs import CrowdNavEnv
+from .episodes import LearnedPolicy
 from .plots import plot_multimodality, plot_storyboard
 
 
@@ -86,7 +86,7 @@ class FigurePolicyConfig:
 
 @dataclass
 class FiguresConfig:
-    """python -m lerobot_crowdnav.figures: storyboard.png and multimodality.png of one episode."""
+    """python -m lerobot_crowdnav.evaluation.figures: storyboard.png and multimodality.png of one episode."""
 
     # Simulator: --env.task (CrowdNav-v0 | BoundedCrowdNav-v0), --env.preset (paper | crowdnavpp)
     # and any simulator field.

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from .sim import EVENT_NAMES
+from ..sim.engine import EVENT_NAMES
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Simulator throughput: ``lerobot-crowdnav-bench`` (also ``python -m lerobot_crowdnav.benchmark``).
+"""Simulator throughput: ``lerobot-crowdnav-bench`` (also ``python -m lerobot_crowdnav.sim.benchmark``).
 
 Measures env-steps/s (one env-step = one environment advanced by dt) through the public APIs:
 the native batched env (``CrowdNavVectorEnv``, autoreset and info included) for each batch size
@@ -20,9 +20,9 @@ import draccus
 import gymnasium as gym
 import numpy as np
 
+from ..cli import machine_description
 from .config import CrowdSimConfig
 from .envs import CrowdNavVectorEnv
-from .eval import machine_description
 
 
 @dataclass

@@ -17,8 +17,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .cli import run_cli
-from .config import CrowdSimConfig
+from ..cli import run_cli
+from ..sim.config import CrowdSimConfig
 from .eval import EvalConfig, EvalSettings, OrcaPolicyConfig, StraightPolicyConfig, evaluate
 from .metrics import markdown_header, markdown_row
 

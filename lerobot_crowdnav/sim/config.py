@@ -15,7 +15,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from . import layout
+from .. import layout
 
 TASKS = ("CrowdNav-v0", "BoundedCrowdNav-v0")
 ORCA_ROBOTS = ("look_ahead", "current_state")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from .sim import CrowdSim
+from .engine import CrowdSim
 
 VIEW_HALF_SIZE = 11.0  # metres shown around the origin: humans spawn up to ~10.5 m out
 ROBOT_COLOR = (40, 160, 60)

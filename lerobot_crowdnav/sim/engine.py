@@ -41,7 +41,7 @@ import numba as nb
 import numpy as np
 
 from .config import ORCA_ROBOTS, CrowdSimConfig
-from .layout import SELF_DIM
+from ..layout import SELF_DIM
 from .orca import bounding_box, compute_new_velocity, insert_sorted, make_obstacles
 
 # Episode events (``info["event"]``).

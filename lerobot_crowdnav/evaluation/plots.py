@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
-from .envs import structured  # noqa: E402
+from ..sim.envs import structured  # noqa: E402
 
 
 def _smooth(y: np.ndarray, window: int) -> np.ndarray:

@@ -1,0 +1,105 @@
+"""Running a robot policy on fixed episode seeds: what every evaluation shares.
+
+``run_episodes`` steps a batch of envs on the first seeds of a split and returns one
+``EpisodeRecord`` per seed; ``LearnedPolicy`` drives the batch with a lerobot policy checkpoint;
+``json_safe`` makes metrics strict JSON. Used by the eval CLI, the figures, the baselines and
+the fine-tuning validation (``rl/validation.py``), which all sit above this module.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..sim.config import split_seeds
+from ..sim.envs import CrowdNavVectorEnv
+from .metrics import EpisodeRecord
+
+
+class LearnedPolicy:
+    """A lerobot policy driving a batch of envs: observation.state in, (B, 2) velocities in m/s
+    out. Chunks are sampled for the whole batch and each slot executes its first
+    ``n_action_steps`` actions (1: replan every step) before taking the next chunk."""
+
+    def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0, use_ema: bool = True):
+        import torch
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        from lerobot.utils.import_utils import register_third_party_plugins
+
+        path = Path(path)
+        if not (path / "config.json").exists():
+            raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
+        register_third_party_plugins()
+        cfg = PreTrainedConfig.from_pretrained(path)
+        cfg.device = device
+        state = cfg.input_features.get("observation.state")
+        if state is None or tuple(state.shape) != (obs_dim,):
+            raise ValueError(f"policy at {path} expects observation.state of shape "
+                             f"{None if state is None else tuple(state.shape)}, the env gives ({obs_dim},)")
+        self.torch = torch
+        self.policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
+        if not use_ema and hasattr(cfg, "use_ema"):
+            cfg.use_ema = False  # after loading: the checkpoint's EMA weights stay, unused
+        self.pre, self.post = make_pre_post_processors(cfg, pretrained_path=str(path))
+        self.n_action_steps = getattr(cfg, "n_action_steps", 1)
+        self.generator = torch.Generator(device=device).manual_seed(seed)
+        self.chunk: np.ndarray | None = None
+        self.index: np.ndarray | None = None
+
+    def __call__(self, obs: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        b = obs.shape[0]
+        if self.chunk is None or self.chunk.shape[0] != b:
+            self.chunk, self.index = None, np.zeros(b, np.int64)
+            fresh = np.ones(b, bool)
+        need = fresh | (self.index >= self.n_action_steps)
+        if need.any():
+            with self.torch.inference_mode():
+                batch = self.pre({"observation.state": self.torch.as_tensor(obs, dtype=self.torch.float32)})
+                chunk = self.policy.predict_action_chunk(batch, generator=self.generator)
+                chunk = self.post(chunk).cpu().numpy()
+            self.chunk = chunk if self.chunk is None else np.where(need[:, None, None], chunk, self.chunk)
+            self.index[need] = 0
+        actions = self.chunk[np.arange(b), self.index]
+        self.index += 1
+        return actions
+
+
+def run_episodes(env: CrowdNavVectorEnv, policy, split: str, n_episodes: int,
+                 progress: bool = True, label: str = "") -> list[EpisodeRecord]:
+    """Run the first ``n_episodes`` seeds of ``split``; records by seed. ``policy`` is a built-in
+    name ("orca", "straight") or a callable ``(obs (B, D), fresh (B,)) -> actions (B, 2)``, fresh
+    marking the slots whose episode just started."""
+    seeds = split_seeds(split, n_episodes)
+    wanted = set(seeds)
+    obs, _ = env.reset(seed=seeds[0])
+    fresh = np.ones(env.num_envs, bool)
+    records: dict[int, EpisodeRecord] = {}
+    bar = tqdm(total=n_episodes, desc=f"eval {label or policy}", unit="ep", disable=not progress)
+    while len(records) < n_episodes:
+        actions = policy(obs, fresh) if callable(policy) else env.expert_actions(policy)
+        obs, _, terminated, truncated, info = env.step(actions)
+        fresh = terminated | truncated
+        if "final_info" in info:
+            for b in np.flatnonzero(info["_final_info"]):
+                rec = EpisodeRecord.from_final_info(info["final_info"], b)
+                if rec.seed in wanted and rec.seed not in records:
+                    records[rec.seed] = rec
+                    bar.update(1)
+            bar.set_postfix(sr=f"{np.mean([r.event == 'success' for r in records.values()]):.3f}")
+    bar.close()
+    return [records[s] for s in seeds]
+
+
+def json_safe(value):
+    """Strict JSON: undefined means (NaN, e.g. NT without a success) become null."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
