@@ -1,7 +1,8 @@
 """Fault injection for the resume tests, and the atomic file operations those tests hold to.
 
 ``LEROBOT_CROWDNAV_FAULT=<point>:<n>`` makes the process SIGKILL itself the n-th time (1-based) it
-reaches ``fault.point("<point>")``: a kill at an exact write or rename site, with no timing. Unset
+reaches ``fault.point("<point>")``: a kill at an exact write or rename site, with no timing.
+``<point>:<n>:SIGINT`` sends Ctrl-C there instead (what a user's interrupt does at that moment). Unset
 (always, outside tests), ``point`` is a dictionary lookup. The named points sit at the real sites
 (see docs/resume.md for the list) and ``lerobot_crowdnav.fault_injection`` drives them.
 """
@@ -23,12 +24,12 @@ def point(name: str) -> None:
     spec = os.environ.get(ENV)
     if not spec:
         return
-    target, _, count = spec.rpartition(":")
+    target, count, *sig = spec.split(":")
     if target != name:
         return
     _hits[name] = _hits.get(name, 0) + 1
     if _hits[name] == int(count):
-        os.kill(os.getpid(), signal.SIGKILL)
+        os.kill(os.getpid(), getattr(signal, sig[0]) if sig else signal.SIGKILL)
 
 
 def write_text(path: Path, text: str) -> None:
