@@ -77,6 +77,10 @@ class MainConfig:
     ft_batch_size: int = 500
     ft_val_episodes: int = 20
     ft_val_freq: int = 4096
+    # Further flags of every lerobot-train run (e.g. ["--policy.noise_draws=4"]) and of every
+    # lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]): a recipe's own settings.
+    bc_args: list[str] = field(default_factory=list)
+    ft_args: list[str] = field(default_factory=list)
     # Training seeds (pretraining and fine-tuning); tables show mean +- std over them.
     seeds: list[int] = field(default_factory=lambda: [1000])
     # Test episodes per method, the first seeds of the test split (paper: 500).
@@ -191,7 +195,7 @@ class Pipeline:
                 f"--dataset.root={self.dataset_root(task)}", "--policy.push_to_hub=false", f"--output_dir={out}",
                 f"--steps={steps}", f"--batch_size={self.cfg.bc_batch_size}", f"--save_freq={max(1, steps // 4)}",
                 f"--log_freq={max(1, min(200, steps // 10))}", f"--num_workers={self.cfg.bc_num_workers}",
-                f"--seed={seed}", "--wandb.enable=false", f"--job_name={out.name}"]
+                f"--seed={seed}", "--wandb.enable=false", f"--job_name={out.name}", *self.cfg.bc_args]
         if self.device:
             argv.append(f"--policy.device={self.device}")
 
@@ -218,7 +222,8 @@ class Pipeline:
                 f"--policy.path={self.train_dir(task, h, seed) / 'checkpoints' / 'last' / 'pretrained_model'}",
                 *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={c.ft_env_steps}",
                 f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
-                f"--save_freq={max(c.ft_val_freq, c.ft_env_steps // 4)}", f"--seed={seed}", f"--output_dir={out}"]
+                f"--save_freq={max(c.ft_val_freq, c.ft_env_steps // 4)}", f"--seed={seed}", f"--output_dir={out}",
+                *c.ft_args]
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
