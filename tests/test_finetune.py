@@ -201,6 +201,43 @@ def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
 
 
+def test_frozen_encoder_scores_from_stored_latents_and_stays_put(pretrained, tmp_path):
+    """--ppo.freeze_encoder: the rollout stores each state's latent, the update scores from it
+    exactly as from the state, the encoder does not move, and the fine-tuned nets do."""
+    frozen = DiffusionPPOConfig(n_steps=8, batch_size=16, update_epochs=2, freeze_encoder=True)
+    agent = load_agent(pretrained, frozen, seed=3).eval()
+    reference = load_agent(pretrained, DiffusionPPOConfig(), seed=3).eval()
+    collector = Collector(CrowdNavVectorEnv(4), agent, None, torch.Generator().manual_seed(0))
+    collector.reset(500_000_000)
+    ro = collector.collect(agent, frozen.n_steps)
+    assert ro.stored["latent"].shape == (8, 4, agent.policy.config.latent_dim)
+    # the same chains as an unfrozen agent samples with the same noise
+    ref = Collector(CrowdNavVectorEnv(4), reference, None, torch.Generator().manual_seed(0))
+    ref.reset(500_000_000)
+    torch.testing.assert_close(ref.collect(reference, frozen.n_steps).stored["chain"], ro.stored["chain"])
+    cols = Columns.of(ro, False, torch.device("cpu"))
+    idx = torch.arange(16)
+    with_latent = agent(*cols[idx])
+    from_state = agent({k: v for k, v in cols[idx][0].items() if k != "latent"}, None, cols[idx][2])
+    torch.testing.assert_close(with_latent.logp, from_state.logp)
+    torch.testing.assert_close(with_latent.value, from_state.value)
+
+    encoder = {k: v.clone() for k, v in agent.policy.actor.encoder.state_dict().items()}
+    denoiser = {k: v.clone() for k, v in agent.policy.actor.denoiser.state_dict().items()}
+    optimizers = {name: torch.optim.AdamW(p, lr=1e-2) for name, p in agent.param_groups().items()}
+    from accelerate import Accelerator
+
+    update(agent, agent, ro, frozen, optimizers, np.random.default_rng(0), Accelerator(cpu=True), train_actor=True)
+    assert all(torch.equal(v, encoder[k]) for k, v in agent.policy.actor.encoder.state_dict().items())
+    assert any(not torch.equal(v, denoiser[k]) for k, v in agent.policy.actor.denoiser.state_dict().items())
+
+    records = run(pretrained, tmp_path / "run", "--env_steps=64", "--ppo.freeze_encoder=true")
+    assert records[-1]["env_steps"] == 64
+    saved = PDPOPolicy.from_pretrained(tmp_path / "run" / "checkpoints" / "last" / "pretrained_model")
+    for a, b in zip(saved.actor.encoder.parameters(), saved.base.encoder.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
 def test_resume_continues_the_counter_and_reproduces_the_next_batch(pretrained, tmp_path):
     straight = run(pretrained, tmp_path / "a", "--env_steps=64")
     first = run(pretrained, tmp_path / "b", "--env_steps=32")

@@ -83,6 +83,10 @@ class DiffusionPPOConfig(PPOConfig):
     min_sampling_denoising_std: float = 0.1
     # Std floor in the transitions' log-probabilities.
     min_logprob_denoising_std: float = 0.1
+    # Keep the pretrained crowd encoder fixed and fine-tune the denoiser only (not in the paper).
+    # The encoder costs far more than the denoiser, so each state's latent is computed once, in the
+    # rollout, and reused by every update epoch: docs/performance.md measures what it saves.
+    freeze_encoder: bool = False
 
     def validate(self) -> None:
         super().validate()

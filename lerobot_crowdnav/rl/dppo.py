@@ -7,6 +7,7 @@ transitions:
 
     stored["state"]  (B, 269)            normalized observation.state (the policy's preprocessor)
     stored["chain"]  (B, K'+1, H, 2)     x_{K'} .. x_0 of the sampled chunk, normalized action units
+    stored["latent"] (B, Z)              the encoder's latent (only with ``freeze_encoder``)
     Scores.logp      (L, M, K')          log-probabilities of the K' transitions
     Scores.value     (L, M)              V(z), z the trained encoder's latent through a stop-gradient
 
@@ -72,12 +73,19 @@ class DiffusionPPOAgent(nn.Module):
         super().__init__()
         self.policy, self.critic = policy, critic
         self.pre, self.post, self.cfg = pre, post, cfg
+        if cfg.freeze_encoder:
+            base = policy.base.encoder.state_dict() if policy.base is not None else {}
+            if any(not torch.equal(v, base[k]) for k, v in policy.actor.encoder.state_dict().items() if k in base):
+                raise ValueError("--ppo.freeze_encoder=true: this policy's encoder was fine-tuned (it differs from "
+                                 "its frozen base's); continue it with --ppo.freeze_encoder=false")
+            policy.actor.encoder.requires_grad_(False)
 
     def initial_memory(self, num_envs: int) -> None:
         return None
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
-        return {"actor": list(self.policy.actor.parameters()), "critic": list(self.critic.parameters())}
+        actor = [p for p in self.policy.actor.parameters() if p.requires_grad]
+        return {"actor": actor, "critic": list(self.critic.parameters())}
 
     def _normalize(self, obs: Tensor) -> Tensor:
         return self.pre({OBS: obs})[OBS].to(self.critic.net[0].weight.device)
@@ -87,14 +95,18 @@ class DiffusionPPOAgent(nn.Module):
         """Exploring: noise at every denoising step, floored at ``min_sampling_denoising_std``;
         otherwise DPPO's deterministic sampling. The action is the chunk's first, in m/s."""
         state = self._normalize(obs)
-        chain = self.policy.sample_chain(state, generator, self.cfg.min_sampling_denoising_std if explore else None)
+        # A frozen encoder is the base's too: one encoding serves the whole chain and every update.
+        latent = self.policy.actor.encoder(state) if self.cfg.freeze_encoder else None
+        chain = self.policy.sample_chain(state, generator, self.cfg.min_sampling_denoising_std if explore else None,
+                                         latent)
         action = self.post(chain[:, -1, 0].clamp(-1, 1)).cpu()  # (B, 2)
-        return Step(action, {"state": state, "chain": chain}, None)
+        stored = {"state": state, "chain": chain} if latent is None else {"state": state, "chain": chain, "latent": latent}
+        return Step(action, stored, None)
 
     def forward(self, samples: dict[str, Tensor], memory: None, episode_start: Tensor) -> Scores:
         L, M = samples["state"].shape[:2]
-        state, chain = samples["state"].flatten(0, 1), samples["chain"].flatten(0, 1)
-        z = self.policy.actor.encoder(state)
+        chain = samples["chain"].flatten(0, 1)
+        z = samples["latent"].flatten(0, 1) if "latent" in samples else self.policy.actor.encoder(samples["state"].flatten(0, 1))
         logp = transition_log_prob(self.policy.actor, z, chain, self.cfg.min_logprob_denoising_std)
         # The critic reads the shared encoder's latent through a stop-gradient, so a fresh critic
         # cannot overwrite the pretrained features.

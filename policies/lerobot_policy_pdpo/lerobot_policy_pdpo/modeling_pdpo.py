@@ -164,12 +164,12 @@ class DiffusionActor(nn.Module):
         return mean, at(self.posterior_std)
 
     def denoise(self, state: Tensor, x: Tensor, steps: range, std_floor: float, final_noise: bool,
-                generator: torch.Generator | None = None) -> Tensor:
+                generator: torch.Generator | None = None, latent: Tensor | None = None) -> Tensor:
         """Run the reverse steps ``k in steps`` (descending) from ``x (B, H, 2)``; returns the chain
         ``(B, len(steps)+1, H, 2)``, ``x`` first. Each step adds the posterior std floored at
         ``std_floor`` times noise clipped to +-3 (DPPO); the k = 0 step is the mean unless
-        ``final_noise``."""
-        z = self.encoder(state)
+        ``final_noise``. ``latent``: the state's encoding when the caller already has it."""
+        z = self.encoder(state) if latent is None else latent
         chain = [x]
         for k in steps:
             mean, std = self.p_mean_std(x, torch.full((x.shape[0],), k, device=x.device, dtype=torch.long), z)
@@ -269,14 +269,15 @@ class PDPOPolicy(PreTrainedPolicy):
         return self.sample_chain(state, generator)[:, -1].clamp(-1, 1)
 
     def sample_chain(self, state: Tensor, generator: torch.Generator | None = None,
-                     exploration_std: float | None = None) -> Tensor:
+                     exploration_std: float | None = None, latent: Tensor | None = None) -> Tensor:
         """DDPM ancestral sampling from x_K ~ N(0, I); returns the trained part of the chain,
         ``(B, K'+1, H, 2)`` = x_{K'} .. x_0 (K' = K for a BC policy; x_0 before the final clamp).
         A fine-tuned policy runs steps k >= K' with the frozen ``base``.
 
         ``exploration_std=None``: std floored at ``min_sampling_denoising_std``, no noise at the
         last step (BC sampling, DPPO's deterministic evaluation). A float: std floored at it and
-        noise at every step (DPPO's fine-tuning rollouts)."""
+        noise at every step (DPPO's fine-tuning rollouts). ``latent``: the state's encoding, for
+        both the frozen and the trained steps (fine-tuning with a frozen encoder computes it once)."""
         cfg = self.config
         floor = cfg.min_sampling_denoising_std if exploration_std is None else exploration_std
         explore = exploration_std is not None
@@ -284,8 +285,8 @@ class PDPOPolicy(PreTrainedPolicy):
         trained = cfg.ft_denoising_steps or cfg.num_diffusion_steps
         if trained < cfg.num_diffusion_steps:
             frozen_steps = range(cfg.num_diffusion_steps - 1, trained - 1, -1)
-            x = self.base.denoise(state, x, frozen_steps, floor, explore, generator)[:, -1]
-        return self.sampling_actor().denoise(state, x, range(trained - 1, -1, -1), floor, explore, generator)
+            x = self.base.denoise(state, x, frozen_steps, floor, explore, generator, latent)[:, -1]
+        return self.sampling_actor().denoise(state, x, range(trained - 1, -1, -1), floor, explore, generator, latent)
 
     def parameter_counts(self) -> dict[str, int]:
         """Actor = encoder + denoiser (paper: 0.848 M); the critic lives with diffusion PPO."""
