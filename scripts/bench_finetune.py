@@ -32,7 +32,9 @@ def run_setting(policy: str, flags: list[str], num_envs: int, n_steps: int, iter
                f"--env.task={task}", f"--num_envs={num_envs}", f"--ppo.n_steps={n_steps}",
                f"--env_steps={per_iter * (iterations + 1)}", "--val.freq=0", "--val.n_episodes=4",
                "--save_freq=1000000000", "--ppo.n_critic_warmup_itr=1", f"--output_dir={out}", *flags]
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if done.returncode:
+            raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
         records = [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]
     return [r for r in records if r.get("critic_warmup") == 0.0 and KEYS["overall"] in r]
 
