@@ -27,28 +27,36 @@ def _smooth(y: np.ndarray, window: int) -> np.ndarray:
 
 def plot_finetune_curves(runs: dict[str, list[dict]], path: str | Path, smooth: int = 5) -> Path:
     """Training success rate and average episode reward against environment steps (the paper's
-    fine-tuning figure), one line per run; validation success rates as markers.
+    fine-tuning figure), and success rate against training wall time, one line per run;
+    validation success rates as markers.
 
     ``runs`` maps a label to the records of a run's ``progress.jsonl`` (keys ``env_steps``,
-    ``train/success_rate``, ``train/episode_return`` and, where validated, ``val/success_rate``).
+    ``train/success_rate``, ``train/episode_return``, ``time/wall_s`` and, where validated,
+    ``val/success_rate``).
     """
-    fig, (ax_sr, ax_ret) = plt.subplots(1, 2, figsize=(11, 4), dpi=120)
+    fig, (ax_sr, ax_ret, ax_time) = plt.subplots(1, 3, figsize=(16, 4), dpi=120)
     for i, (label, records) in enumerate(runs.items()):
         color = f"C{i}"
-        steps = np.array([r["env_steps"] for r in records], dtype=float)
-        sr = np.array([np.nan if r.get("train/success_rate") is None else r["train/success_rate"] for r in records])
-        ret = np.array([np.nan if r.get("train/episode_return") is None else r["train/episode_return"] for r in records])
+        column = lambda key: np.array([np.nan if r.get(key) is None else r[key] for r in records], dtype=float)  # noqa: E731
+        steps, sr, hours = column("env_steps"), column("train/success_rate"), column("time/wall_s") / 3600
+        hours[0] = 0.0 if np.isnan(hours[0]) else hours[0]  # the pretrained policy's validation
         ax_sr.plot(steps, 100 * _smooth(sr, smooth), color=color, label=f"{label} (train)")
-        ax_ret.plot(steps, _smooth(ret, smooth), color=color, label=label)
-        val = [(r["env_steps"], r["val/success_rate"]) for r in records if r.get("val/success_rate") is not None]
-        if val:
-            vs, vsr = zip(*val, strict=True)
-            ax_sr.plot(vs, 100 * np.array(vsr), "o--", color=color, markersize=4, alpha=0.8, label=f"{label} (validation)")
+        ax_ret.plot(steps, _smooth(column("train/episode_return"), smooth), color=color, label=label)
+        ax_time.plot(hours, 100 * _smooth(sr, smooth), color=color, label=f"{label} (train)")
+        val = np.array([(s, h, r["val/success_rate"]) for s, h, r in zip(steps, hours, records, strict=True)
+                        if r.get("val/success_rate") is not None]).reshape(-1, 3)
+        if len(val):
+            ax_sr.plot(val[:, 0], 100 * val[:, 2], "o--", color=color, markersize=4, alpha=0.8, label=f"{label} (validation)")
+            ax_time.plot(val[:, 1], 100 * val[:, 2], "o--", color=color, markersize=4, alpha=0.8,
+                         label=f"{label} (validation)")
     ax_sr.set(xlabel="environment steps", ylabel="success rate (%)", title="Success rate", ylim=(0, 100))
     ax_ret.set(xlabel="environment steps", ylabel="average episode reward", title="Average episode reward")
-    for ax in (ax_sr, ax_ret):
+    ax_time.set(xlabel="training wall time (h)", ylabel="success rate (%)", title="Success rate against wall time",
+                ylim=(0, 100))
+    for ax in (ax_sr, ax_ret, ax_time):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    for ax in (ax_sr, ax_ret):
         ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
     fig.tight_layout()
     path = Path(path)

@@ -160,7 +160,8 @@ def finetune(cfg: FinetuneConfig) -> dict:
     rng = np.random.default_rng([cfg.seed, rank])  # minibatch order
     val_env = CrowdNavVectorEnv(cfg.val.n_episodes, config=sim_cfg) if main else None
     pretrain_config = source / "train_config.json"  # lerobot-train's record, carried along (provenance)
-    progress = {"iteration": 0, "env_steps": 0, "best_val_sr": -1.0}
+    # wall_s: training wall time so far, summed over resumed invocations (the learning curve's clock).
+    progress = {"iteration": 0, "env_steps": 0, "best_val_sr": -1.0, "wall_s": 0.0}
 
     def save_policy(path: Path) -> None:
         agent.save(path)
@@ -179,7 +180,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
         shared = ckpts.load_shared()
         for name, opt in optimizers.items():
             opt.load_state_dict(shared[f"{name}_opt"])
-        progress.update({k: shared[k] for k in progress})
+        progress.update({k: shared.get(k, progress[k]) for k in progress})
         state = ckpts.last / "training_state"
         with np.load(state / f"env_rank{rank}.npz") as env_state:
             env.load_state_dict(dict(env_state))
@@ -218,6 +219,8 @@ def finetune(cfg: FinetuneConfig) -> dict:
         last = progress["env_steps"] >= cfg.env_steps
         if main and (last or crossed(progress["env_steps"], per_iter, cfg.val.freq)):
             record.update(validate_and_keep_best())
+        progress["wall_s"] += time.perf_counter() - t0
+        record["time/wall_s"] = progress["wall_s"]
         log.log(record)
         bar.update(min(per_iter, cfg.env_steps - bar.n))
         if main:
