@@ -40,7 +40,8 @@ from pathlib import Path
 
 import draccus
 
-from .cli import run_cli
+from . import fault
+from .cli import machine_description, run_cli
 from .evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
 from .sim.config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
 
@@ -130,9 +131,10 @@ class Evaluation:
 
 
 class Pipeline:
-    def __init__(self, cfg: MainConfig):
+    def __init__(self, cfg: MainConfig, command: str = "lerobot-crowdnav-main"):
         cfg.validate()
         self.cfg = cfg
+        self.command = command  # what the user typed: the model cards' "reproduce" line
         self.root = cfg.root
         self.stages: dict[str, Stage] = {}  # this invocation's stages, in order
         self.device = cfg.device
@@ -146,10 +148,27 @@ class Pipeline:
         else:
             print(f"[main] {name}: {' '.join(argv)}", flush=True)
             start = time.perf_counter()
-            run()
+            try:
+                run()
+            finally:
+                self._add_wall_time(name, time.perf_counter() - start)
             stage = Stage(name, argv, time.perf_counter() - start)
         self.stages[name] = stage
         return stage
+
+    @property
+    def _times_path(self) -> Path:
+        return self.root / "stage_times.json"
+
+    def wall_times(self) -> dict[str, float]:
+        """Wall time of each stage summed over every invocation that ran it (a resumed stage's
+        time includes the interrupted attempts, except one killed outright)."""
+        return json.loads(self._times_path.read_text()) if self._times_path.exists() else {}
+
+    def _add_wall_time(self, name: str, seconds: float) -> None:
+        times = self.wall_times()
+        times[name] = times.get(name, 0.0) + seconds
+        fault.write_text(self._times_path, json.dumps(times, indent=2))
 
     def _env_flags(self, task: str) -> list[str]:
         return [f"--env.task={task}", f"--env.preset={self.cfg.preset}"]
@@ -285,8 +304,15 @@ class Pipeline:
             metrics = self.eval_dir(task, ev.name) / "metrics.json"
             argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={pretrained}",
                     f"--repo_id={policy_repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
+            curve = self.finetune_dir(task, h, ev.seed) / "training_curves.png"
+            times = self.wall_times()
+            recipe = {"command": self.command, "machine": machine_description(),
+                      "wall_time_s": {n: times[n] for n in (f"collect {SHORT[task]}", f"pretrain {SHORT[task]} H={h} seed={ev.seed}",
+                                                            f"finetune {SHORT[task]} H={h} seed={ev.seed}",
+                                                            f"eval {SHORT[task]} {ev.name}") if n in times}}
             self._stage(f"push policy {SHORT[task]} H={h}", argv, (hub / "models" / policy_repo).exists() and not self.cfg.rerun_eval,
-                        lambda p=pretrained, r=policy_repo, m=metrics: push_policy_to_dir(p, r, hub, True, m))
+                        lambda p=pretrained, r=policy_repo, m=metrics, c=curve, rc=recipe: push_policy_to_dir(
+                            p, r, hub, True, m, c if c.exists() else None, rc))
 
     def figures(self, task: str) -> Stage:
         from .evaluation.figures import record_snapshots
@@ -361,7 +387,8 @@ class Pipeline:
 
 
 def main(argv: list[str] | None = None) -> None:
-    run_cli(MainConfig, lambda cfg: Pipeline(cfg).run(), argv,
+    command = " ".join(["lerobot-crowdnav-main", *(sys.argv[1:] if argv is None else argv)])
+    run_cli(MainConfig, lambda cfg: Pipeline(cfg, command).run(), argv,
             "rerun the same command to resume (complete stages are skipped)")
 
 

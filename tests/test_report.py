@@ -75,7 +75,11 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         for fig in ("storyboard.png", "multimodality.png", "finetune_curves.png"):
             assert (root / "figures" / task / fig).stat().st_size > 5_000
         assert list((root / "eval" / task / "orca" / "videos").glob("*.gif"))
-        assert (root / "hub" / "models" / "local" / f"pdpo_{task}_h5" / "model.safetensors").exists()
+        model = root / "hub" / "models" / "local" / f"pdpo_{task}_h5"
+        assert (model / "model.safetensors").exists() and (model / "learning_curve.png").stat().st_size > 5_000
+        card = (model / "README.md").read_text()
+        assert "![diffusion-PPO learning curve](learning_curve.png)" in card and " ".join(["lerobot-crowdnav-main", *argv]) in card
+        assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
         assert (root / "hub" / "datasets" / "local" / f"crowdnav_orca_{task}" / "meta" / "info.json").exists()
     commands = json.loads((root / "commands.json").read_text())
     assert commands["pretrain bounded H=5 seed=1000"][0] == "lerobot-train"

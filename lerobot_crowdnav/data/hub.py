@@ -53,6 +53,9 @@ batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
         license="apache-2.0", repo_id=repo_id, dataset_description=description)
 
 
+CURVE_FILE = "learning_curve.png"
+
+
 def _publish(target: Path, overwrite: bool, fill) -> Path:
     """Write a repository directory aside with ``fill(staging_dir)``, then swap it with ``target``
     in one atomic rename (replacing an existing one only with ``overwrite``): a reader, or a kill,
@@ -98,8 +101,11 @@ def split_repo_id(repo_id: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
-def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
-    """Model card: architecture, training data and budget, parameter counts, evaluation table."""
+def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, recipe: dict | None = None,
+                curve: str | None = None):
+    """Model card: architecture, training data and budget, parameter counts, evaluation table;
+    with ``recipe`` (``command`` that reproduces it, ``wall_time_s`` per stage) and ``curve`` (the
+    learning-curve image's file name in the repository) when the main job pushes it."""
     import json
 
     from huggingface_hub import ModelCard, ModelCardData
@@ -157,8 +163,20 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
                                                          if k in ('sr', 'cr', 'tr', 'nt', 'pl', 'itr', 'sd', 'oob')}, bounded)]
     else:
         lines.append("Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`.")
+    if curve:
+        lines += ["", "## Learning curve", "", f"![diffusion-PPO learning curve]({curve})"]
+    if recipe:
+        times = recipe.get("wall_time_s") or {}
+        lines += ["", "## Reproduce", "", "From scratch (demonstrations, pretraining, fine-tuning, evaluation, this directory):",
+                  "", "```bash", recipe["command"], "```", ""]
+        if times:
+            lines += ["| stage | wall time (min) |", "|---|---|"]
+            lines += [f"| {name} | {t / 60:.1f} |" for name, t in times.items()]
+            lines += [f"| total | {sum(times.values()) / 60:.1f} |", ""]
+            lines.append(f"Machine: {recipe.get('machine', 'unknown')}.")
+    task = ((finetune or {}).get("env") or (metrics or {}).get("env") or {}).get("task", "BoundedCrowdNav-v0")
     lines += ["", "## Use", "", "```bash",
-              f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task=BoundedCrowdNav-v0 "
+              f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task={task} "
               "--eval.n_episodes=50 --seed=2000000000", "```"]
     data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
                          tags=["robotics", "lerobot", "pdpo", "diffusion-policy", "crowd-navigation"],
@@ -167,9 +185,11 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None):
 
 
 def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path, overwrite: bool = False,
-                       metrics_path: str | Path | None = None) -> Path:
+                       metrics_path: str | Path | None = None, curve: str | Path | None = None,
+                       recipe: dict | None = None) -> Path:
     """Copy a ``pretrained_model`` directory to ``hub_dir/models/<org>/<name>`` with a model card:
-    config, safetensors weights, processors, train config. Pickled weights are refused."""
+    config, safetensors weights, processors, train config, and the learning curve ``curve`` (a
+    PNG) when given. Pickled weights are refused."""
     import json
 
     pretrained = Path(pretrained)
@@ -183,13 +203,16 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
         p.name in ("config.json", "model.safetensors", "critic.safetensors", "train_config.json", "finetune_config.json")
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
-    card = policy_card(pretrained, repo_id, metrics)
+    curve = Path(curve) if curve else None
+    card = policy_card(pretrained, repo_id, metrics, recipe, CURVE_FILE if curve else None)
     org, name = split_repo_id(repo_id)
 
     def fill(dst: Path) -> None:
         dst.mkdir(parents=True)
         for f in files:
             _copy_file(f, dst / f.name)
+        if curve:
+            _copy_file(curve, dst / CURVE_FILE)
         card.save(dst / "README.md")
 
     return _publish(Path(hub_dir) / "models" / org / name, overwrite, fill)
@@ -209,6 +232,8 @@ class PushConfig:
     overwrite: bool = False
     # Policies: a metrics.json of lerobot-crowdnav-eval to put in the model card.
     metrics: Path | None = None
+    # Policies: a learning-curve PNG (a fine-tuning run's training_curves.png) to show in the card.
+    curve: Path | None = None
 
 
 def push(cfg: PushConfig) -> None:
@@ -217,7 +242,7 @@ def push(cfg: PushConfig) -> None:
     if cfg.kind == "dataset":
         print(push_dataset_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite))
     elif cfg.kind == "policy":
-        print(push_policy_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite, cfg.metrics))
+        print(push_policy_to_dir(cfg.root, cfg.repo_id, cfg.push_to_hub_dir, cfg.overwrite, cfg.metrics, cfg.curve))
     else:
         raise ValueError(f"--kind must be dataset or policy, got {cfg.kind!r}")
 
