@@ -100,3 +100,27 @@ def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path
     with --resume=true); the rerun completes and its tables equal the uninterrupted run's. More
     points: scripts/fault_injection.py."""
     assert fi.main_case(tmp_path, "finetune.checkpoint_writing", 1, tiny_main) == []
+
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@pytest.mark.parametrize("path", sorted([*(CONFIGS / "main").glob("*.yaml"), *(CONFIGS / "recipes").glob("*.yaml")]),
+                         ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_main_and_recipe_configs_parse_and_their_flags_do_too(path):
+    """Every main-job config validates, and its bc_args / ft_args are flags that lerobot-train's
+    PDPO config and lerobot-crowdnav-finetune accept."""
+    import draccus
+    from lerobot_policy_pdpo import PDPOConfig
+
+    from lerobot_crowdnav.pipeline import MainConfig
+    from lerobot_crowdnav.rl.finetune import FinetuneConfig
+
+    cfg = draccus.parse(MainConfig, config_path=str(path), args=[])
+    cfg.validate()
+    if path.parent.name == "recipes":
+        assert cfg.run == path.stem and len(cfg.tasks) == 1 and len(cfg.horizons) == 1 and cfg.test_episodes == 500
+        assert f"configs/recipes/{path.name}" in path.read_text()  # its own command in the header
+    assert all(f.startswith("--policy.") for f in cfg.bc_args), "bc_args: only policy flags are recipe settings"
+    draccus.parse(PDPOConfig, args=[f"--{f.removeprefix('--policy.')}" for f in cfg.bc_args])
+    draccus.parse(FinetuneConfig, args=list(cfg.ft_args)).ppo.validate()
