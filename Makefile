@@ -6,10 +6,12 @@ PY := $(VENV)/bin/python
 
 .PHONY: main test bench clean
 
-$(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/lerobot_policy_pdpo/pyproject.toml
+$(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/lerobot_policy_pdpo/pyproject.toml \
+		policies/lerobot_policy_crowdnavpp/pyproject.toml
 	@test -x $(PY) || "$$(scripts/find_python312.sh)" -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]" -e plugins/lerobot_env_crowdnav -e policies/lerobot_policy_pdpo
+	$(PY) -m pip install --quiet -e ".[test]" -e plugins/lerobot_env_crowdnav -e policies/lerobot_policy_pdpo \
+		-e policies/lerobot_policy_crowdnavpp
 	@touch $@
 
 # The main job on embedded defaults (about 15 min on 2 CPU cores): ORCA demonstrations ->

@@ -1,5 +1,5 @@
 """Imports only go down: every import (module- or function-level, absolute or relative) of every
-module of ``lerobot_crowdnav`` and of the two plugins targets a module of the same or a lower layer
+module of ``lerobot_crowdnav`` and of the plugins targets a module of the same or a lower layer
 (docs/architecture.md). A new module must be given a layer here."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ PACKAGES = {  # top-level package -> its directory
     "lerobot_crowdnav": ROOT / "lerobot_crowdnav",
     "lerobot_env_crowdnav": ROOT / "plugins" / "lerobot_env_crowdnav" / "lerobot_env_crowdnav",
     "lerobot_policy_pdpo": ROOT / "policies" / "lerobot_policy_pdpo" / "lerobot_policy_pdpo",
+    "lerobot_policy_crowdnavpp": ROOT / "policies" / "lerobot_policy_crowdnavpp" / "lerobot_policy_crowdnavpp",
 }
 EV = "lerobot_crowdnav.evaluation"
 # Lowest first. A module belongs to the layer of its longest listed prefix (a package or a module).
@@ -23,7 +24,7 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("sim", ["lerobot_crowdnav", "lerobot_crowdnav.sim", "lerobot_env_crowdnav"]),
     ("evaluation core", [EV, f"{EV}.metrics", f"{EV}.episodes", f"{EV}.plots", f"{EV}.parameters"]),
     ("data", ["lerobot_crowdnav.data"]),
-    ("policy", ["lerobot_policy_pdpo"]),
+    ("policy", ["lerobot_policy_pdpo", "lerobot_policy_crowdnavpp"]),
     ("rl", ["lerobot_crowdnav.rl"]),
     ("evaluation CLIs and report", [f"{EV}.eval", f"{EV}.baselines", f"{EV}.figures", f"{EV}.report"]),
     ("main job", ["lerobot_crowdnav.pipeline", "lerobot_crowdnav.fault_injection"]),

@@ -1,0 +1,246 @@
+"""CrowdNav++ (Liu et al., ICRA 2023; ``selfAttn_merge_srnn``): the attention-graph recurrent
+actor-critic, written from the reference's description (docs/crowdnavpp.md), and its lerobot wrapper.
+
+One env step, B envs, N human slots (shapes; sizes of the reference config):
+
+    split_obs(observation.state (B, 269))
+      robot (B, 9)        [vx, vy | px, py, r, gx, gy, v_pref, theta]   world frame, m and m/s
+      humans (B, N, 12)   positions at k = 0..5 relative to the robot    m, world axes
+      visible (B, N)      the first max(1, #visible) slots (sorted prefix; slot 0 always admitted)
+    robot_linear          (B, 256)        Linear(9, 256) ReLU
+    human_attn            (B, N, 512)     embed 12->128->512, q/k/v linears, 8-head attention, keys masked
+    spatial_linear        (B, N, 256)     Linear(512, 256) ReLU
+    robot_human_attn      (B, 256)        dot product of 64-d projections x N/sqrt(64), masked softmax,
+                                          weighted sum of the human features
+    node_rnn              (B, 256)        [ReLU(Linear 256->64)(robot) | ReLU(Linear 256->64)(attended)]
+                                          -> GRU 128 (memory (B, 128), zeroed at an episode start) -> Linear 256
+    actor / critic        (B, 256)        two Linear+Tanh each
+    action_mean (B, 2), value (B,)        Linear(256, 2); Linear(256, 1); std = exp(log_std), state-independent
+
+The reference's ``human_node_final_linear`` (Linear(256, 2), never used in its forward) is left
+out: DDP refuses parameters that never get a gradient. ``CrowdNavPPNet.reference_parameter_count``
+adds it back for the comparison with the paper's 2.503 M.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import OBS_STATE
+from torch import Tensor, nn
+
+from lerobot_crowdnav.layout import ROBOT_DIM, SELF_DIM, humans_slice, mask_slice
+
+from .configuration_crowdnavpp import CrowdNavPPConfig
+
+# The reference's dead Linear(node_output_size, 2), counted by the paper's 2.503 M.
+DEAD_HEAD_PARAMETERS = 256 * 2 + 2
+
+
+class CrowdNavPPInputs(NamedTuple):
+    """CrowdNav++'s observation dict, from ours."""
+
+    robot: Tensor  # (..., 9) cat(temporal_edges (vx, vy), robot_node (px, py, r, gx, gy, v_pref, theta))
+    humans: Tensor  # (..., N, 2(L+1)) spatial_edges: positions at k = 0..L minus the robot's, m
+    detected: Tensor  # (...,) detected_human_num, clamped to >= 1 (long)
+    visible: Tensor  # (..., N) bool: slot i < detected
+
+
+def split_obs(state: Tensor, num_humans: int, prediction_steps: int) -> CrowdNavPPInputs:
+    """observation.state ``(..., D)`` -> CrowdNav++'s robot node, spatial edges and mask.
+
+    The robot 9-vector puts the velocity (the reference's temporal edge) first, as the reference
+    concatenates it. Visible humans come first in our layout (sorted by distance), so the count
+    reproduces the reference's prefix mask; with nobody visible the count is 1 and slot 0 (a
+    sentinel row) is attended, as the reference env does (an all-masked row would give NaN)."""
+    robot = torch.cat([state[..., ROBOT_DIM:SELF_DIM], state[..., :ROBOT_DIM]], dim=-1)
+    humans = state[..., humans_slice(num_humans, prediction_steps)].unflatten(-1, (num_humans, -1))
+    detected = state[..., mask_slice(num_humans, prediction_steps)].sum(-1).round().long().clamp(min=1)
+    visible = torch.arange(num_humans, device=state.device) < detected[..., None]
+    return CrowdNavPPInputs(robot, humans, detected, visible)
+
+
+def _orthogonal(layer: nn.Linear, gain: float) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class HumanSelfAttention(nn.Module):
+    """Human-human attention (reference ``SpatialEdgeSelfAttn``): an MLP embedding of each
+    spatial edge, then separate q/k/v linears in front of ``nn.MultiheadAttention`` (whose own
+    in-projection follows: a reference quirk, kept). Invisible humans are masked as keys only;
+    their rows still produce outputs, which the robot-human attention then ignores."""
+
+    def __init__(self, cfg: CrowdNavPPConfig):
+        super().__init__()
+        d = cfg.attn_size
+        self.embedding = nn.Sequential(nn.Linear(cfg.human_input_size, cfg.human_embed_hidden), nn.ReLU(),
+                                       nn.Linear(cfg.human_embed_hidden, d), nn.ReLU())
+        self.q_linear, self.k_linear, self.v_linear = nn.Linear(d, d), nn.Linear(d, d), nn.Linear(d, d)
+        self.attention = nn.MultiheadAttention(d, cfg.attn_heads, batch_first=True)
+
+    def forward(self, humans: Tensor, visible: Tensor) -> Tensor:
+        """humans (B, N, 2(L+1)), visible (B, N) -> (B, N, attn_size)."""
+        e = self.embedding(humans)
+        # q, k, v are distinct tensors, so torch never takes its fused fast path (which would zero
+        # the padded query rows): rollout (no grad) and update (grad) compute the same thing.
+        z, _ = self.attention(self.q_linear(e), self.k_linear(e), self.v_linear(e), key_padding_mask=~visible,
+                              need_weights=False)
+        return z
+
+
+class RobotHumanAttention(nn.Module):
+    """Robot-human attention (reference ``EdgeAttention_M``, one head): scores
+    ``<W_t robot, W_s h_i> * N / sqrt(attention_size)`` (the reference *multiplies* by this
+    temperature: 2.5 for N = 20), masked softmax over the N slots, weighted sum of h itself."""
+
+    def __init__(self, cfg: CrowdNavPPConfig):
+        super().__init__()
+        self.temporal_edge_layer = nn.Linear(cfg.feature_size, cfg.attention_size)
+        self.spatial_edge_layer = nn.Linear(cfg.feature_size, cfg.attention_size)
+        self.temperature = cfg.num_humans / math.sqrt(cfg.attention_size)
+
+    def forward(self, robot: Tensor, humans: Tensor, visible: Tensor) -> tuple[Tensor, Tensor]:
+        """robot (B, F), humans (B, N, F), visible (B, N) -> attended (B, F), weights (B, N)."""
+        scores = (self.spatial_edge_layer(humans) * self.temporal_edge_layer(robot)[:, None]).sum(-1)
+        weights = (scores * self.temperature).masked_fill(~visible, -1e9).softmax(-1)
+        return (weights[..., None] * humans).sum(-2), weights
+
+
+class NodeRNN(nn.Module):
+    """The robot node's GRU (reference ``EndRNN``): embeds the robot features and the attended
+    human features (64 each, ReLU), one GRU step, a linear output (no activation)."""
+
+    def __init__(self, cfg: CrowdNavPPConfig):
+        super().__init__()
+        self.encoder_linear = nn.Linear(cfg.feature_size, cfg.node_embedding_size)
+        self.edge_attention_embed = nn.Linear(cfg.feature_size, cfg.node_embedding_size)
+        self.gru = nn.GRU(2 * cfg.node_embedding_size, cfg.node_rnn_size)
+        for name, p in self.gru.named_parameters():  # reference RNNBase: orthogonal weights, zero biases
+            nn.init.orthogonal_(p) if "weight" in name else nn.init.zeros_(p)
+        self.output_linear = nn.Linear(cfg.node_rnn_size, cfg.node_output_size)
+
+    def forward(self, robot: Tensor, attended: Tensor, memory: Tensor, starts: Tensor) -> tuple[Tensor, Tensor]:
+        """robot, attended (L, M, F); memory (M, H) before step 0; starts (L, M) bool, where the
+        memory restarts from zeros -> outputs (L, M, node_output_size), memory after step L-1."""
+        x = torch.cat([self.encoder_linear(robot).relu(), self.edge_attention_embed(attended).relu()], -1)
+        out = []
+        h = memory[None]
+        for t in range(x.shape[0]):
+            h = h * ~starts[t, None, :, None]
+            y, h = self.gru(x[t:t + 1], h)
+            out.append(y)
+        return self.output_linear(torch.cat(out)), h[0]
+
+
+class CrowdNavPPNet(nn.Module):
+    """The whole actor-critic: ``unroll`` scores sequences, ``step`` acts."""
+
+    def __init__(self, cfg: CrowdNavPPConfig):
+        super().__init__()
+        self.cfg = cfg
+        sqrt2 = math.sqrt(2)
+        self.robot_linear = nn.Sequential(_orthogonal(nn.Linear(cfg.robot_input_size, cfg.feature_size), sqrt2), nn.ReLU())
+        self.human_attn = HumanSelfAttention(cfg)
+        self.spatial_linear = nn.Sequential(_orthogonal(nn.Linear(cfg.attn_size, cfg.feature_size), sqrt2), nn.ReLU())
+        self.robot_human_attn = RobotHumanAttention(cfg)
+        self.node_rnn = NodeRNN(cfg)
+        hid = cfg.head_hidden_size
+        self.actor = nn.Sequential(_orthogonal(nn.Linear(cfg.node_output_size, hid), sqrt2), nn.Tanh(),
+                                   _orthogonal(nn.Linear(hid, hid), sqrt2), nn.Tanh())
+        self.critic = nn.Sequential(_orthogonal(nn.Linear(cfg.node_output_size, hid), sqrt2), nn.Tanh(),
+                                    _orthogonal(nn.Linear(hid, hid), sqrt2), nn.Tanh())
+        self.critic_linear = _orthogonal(nn.Linear(hid, 1), sqrt2)
+        self.action_mean = _orthogonal(nn.Linear(hid, 2), 1.0)
+        self.log_std = nn.Parameter(torch.full((2,), cfg.init_log_std))
+
+    def encode(self, state: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The part without recurrence, for any batch of observations ``(B, D)``: robot
+        features (B, F), attended human features (B, F), robot-human attention weights (B, N)."""
+        obs = split_obs(state, self.cfg.num_humans, self.cfg.prediction_steps)
+        robot = self.robot_linear(obs.robot)
+        humans = self.spatial_linear(self.human_attn(obs.humans, obs.visible))
+        attended, weights = self.robot_human_attn(robot, humans, obs.visible)
+        return robot, attended, weights
+
+    def unroll(self, state: Tensor, memory: Tensor, starts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """M sequences of L observations ``(L, M, D)`` from memory ``(M, H)``, restarting where
+        ``starts (L, M)`` -> action mean (L, M, 2), value (L, M), the memory after the last step."""
+        L, M = state.shape[:2]
+        robot, attended, _ = self.encode(state.reshape(L * M, -1))  # every step at once
+        x, memory = self.node_rnn(robot.view(L, M, -1), attended.view(L, M, -1), memory, starts)
+        return self.action_mean(self.actor(x)), self.critic_linear(self.critic(x)).squeeze(-1), memory
+
+    def step(self, state: Tensor, memory: Tensor, starts: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """One step of B envs: state (B, D), memory (B, H) -> mean (B, 2), value (B,), memory."""
+        starts = torch.zeros(1, state.shape[0], dtype=torch.bool, device=state.device) if starts is None else starts[None]
+        mean, value, memory = self.unroll(state[None], memory, starts)
+        return mean[0], value[0], memory
+
+    def initial_memory(self, batch_size: int) -> Tensor:
+        return torch.zeros(batch_size, self.cfg.node_rnn_size, device=self.log_std.device)
+
+    def parameter_counts(self) -> dict[str, int]:
+        trainable = sum(p.numel() for p in self.parameters() if p.requires_grad)
+        return {"trainable": trainable, "reference_with_dead_head": trainable + DEAD_HEAD_PARAMETERS}
+
+
+class CrowdNavPPPolicy(PreTrainedPolicy):
+    """CrowdNav++ for lerobot. ``select_action`` / ``predict_action_chunk`` act deterministically
+    (the Gaussian's mean, as the reference's evaluation) and carry a (B, node_rnn_size) GRU
+    memory from call to call; ``reset()`` clears it, and ``episode_start`` (B,) bool zeroes the
+    rows of envs whose episode just began. Trained by PPO only: ``forward`` has no loss."""
+
+    config_class = CrowdNavPPConfig
+    name = "crowdnavpp"
+    recurrent = True
+
+    def __init__(self, config: CrowdNavPPConfig, **kwargs):
+        super().__init__(config)
+        config.validate_features()
+        self.config = config
+        self.net = CrowdNavPPNet(config)
+        self.reset()
+
+    @classmethod
+    def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
+        """Always strict: missing weights must not load as random ones."""
+        return super()._load_as_safetensor(model, model_file, map_location, True)
+
+    def get_optim_params(self) -> list[nn.Parameter]:
+        return list(self.parameters())
+
+    def reset(self) -> None:
+        self._memory: Tensor | None = None
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
+        raise NotImplementedError("crowdnavpp is an RL policy with no supervised loss: train it with PPO "
+                                  "(lerobot-crowdnav-train-ppo --policy.type=crowdnavpp), not lerobot-train")
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """The next action of each env ``(B, 1, 2)`` in m/s (the mean), advancing the memory.
+        ``episode_start`` (B,) bool: envs whose memory restarts; a new batch size restarts all."""
+        state = batch[OBS_STATE]
+        b = state.shape[0]
+        if self._memory is None or self._memory.shape[0] != b:
+            self._memory = self.net.initial_memory(b)
+        starts = kwargs.get("episode_start")
+        starts = None if starts is None else torch.as_tensor(starts, dtype=torch.bool, device=state.device)
+        mean, _, self._memory = self.net.step(state, self._memory, starts)
+        return mean[:, None]
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """The next action ``(B, 2)`` in m/s."""
+        return self.predict_action_chunk(batch, **kwargs)[:, 0]
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Trainable parameters (2,502,021 at the reference sizes) and the reference network's
+        count with its unused head (2,502,535: the paper's 2.503 M)."""
+        return self.net.parameter_counts()
+
