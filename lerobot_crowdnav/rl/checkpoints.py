@@ -1,6 +1,7 @@
 """Fine-tuning checkpoints on disk and the rules for resuming from them.
 
-    checkpoints/<env steps>/pretrained_model   the policy (the agent's ``save``) + finetune_config.json
+    checkpoints/<env steps>/pretrained_model   the policy (the agent's ``save``) + the run's settings
+                                               (finetune_config.json or train_ppo_config.json)
     checkpoints/<env steps>/training_state     optimizers.pt (optimizers, counters), and per process
                                                env_rank<r>.npz, rng_rank<r>.json
     checkpoints/last -> <latest>;  checkpoints/best/pretrained_model (+ best.json)
@@ -25,9 +26,19 @@ from .. import fault
 RESUME_KEYS = ("env", "num_envs", "ppo", "seed", "env_seed")
 
 
-def resume_conflicts(saved: dict, now: dict, world_size: int) -> list[str]:
-    """The settings a resumed run changed (``saved``: the checkpoint's finetune_config.json)."""
-    changed = [k for k in RESUME_KEYS if saved.get(k) != now.get(k)]
+def resume_conflicts(saved: dict, now: dict, world_size: int, defaults: dict | None = None) -> list[str]:
+    """The settings a resumed run changed (``saved``: the checkpoint's run settings file). A
+    setting that the saved file lacks (added since it was written) counts at its value in
+    ``defaults`` (the settings of a default-constructed config)."""
+    defaults = defaults or {}
+
+    def filled(k: str):
+        value = saved.get(k)
+        if isinstance(value, dict) and isinstance(defaults.get(k), dict):
+            return {**{d: v for d, v in defaults[k].items() if d in now.get(k, {})}, **value}
+        return value
+
+    changed = [k for k in RESUME_KEYS if filled(k) != now.get(k)]
     if saved.get("world_size", 1) != world_size:
         changed.append(f"number of processes ({saved.get('world_size', 1)} -> {world_size})")
     return changed

@@ -42,6 +42,17 @@ class PPOConfig:
     n_critic_warmup_itr: int = 2
     # Gradient-norm clip of each optimizer's parameters (0: none, DPPO's default).
     max_grad_norm: float = 0.0
+    # Adam's epsilon, both optimizers (PyTorch's default 1e-8; CrowdNav++: 1e-5).
+    adam_eps: float = 1e-8
+    # Clip the value loss around the pre-update values by +-clip_ploss_coef (OpenAI baselines,
+    # CrowdNav++); false: the plain 0.5 (V - return)^2.
+    clip_vloss: bool = False
+    # Advantage normalization: per "minibatch" (CleanRL) or once over each process's "rollout"
+    # (CrowdNav++, eps 1e-5).
+    norm_adv: str = "minibatch"
+    # Bootstrap a timeout from V of its final observation (true); false: a timeout is terminal,
+    # as CrowdNav++ trains (use_proper_time_limits=False).
+    bootstrap_timeouts: bool = True
 
     def validate(self) -> None:
         for name in ("n_steps", "batch_size", "update_epochs"):
@@ -55,6 +66,10 @@ class PPOConfig:
                 raise ValueError(f"--ppo.{name} must be in (0, 1], got {getattr(self, name)}")
         if self.target_kl < 0 or self.max_grad_norm < 0 or self.n_critic_warmup_itr < 0:
             raise ValueError("--ppo.target_kl, --ppo.max_grad_norm and --ppo.n_critic_warmup_itr must be >= 0")
+        if not self.adam_eps > 0:
+            raise ValueError(f"--ppo.adam_eps must be > 0, got {self.adam_eps}")
+        if self.norm_adv not in ("minibatch", "rollout"):
+            raise ValueError(f"--ppo.norm_adv must be minibatch or rollout, got {self.norm_adv!r}")
 
     def clip_per_part(self) -> np.ndarray:
         """PPO clip of each scored part of a decision, ``(n,)``: one part here."""

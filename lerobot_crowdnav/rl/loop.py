@@ -18,7 +18,7 @@ from torch import Tensor
 
 from ..sim.engine import EVENT_NAMES
 from .config import PPOConfig
-from .ppo import RunningRewardScaler, explained_variance, gae, ppo_losses
+from .ppo import RunningRewardScaler, explained_variance, gae, normalize_advantages, ppo_losses
 
 
 @dataclass
@@ -157,6 +157,14 @@ def bootstrap_values(agent, ro: Rollout, values: np.ndarray) -> np.ndarray:
     return next_values
 
 
+def advantages(ro: Rollout, values: np.ndarray, next_values: np.ndarray, cfg: PPOConfig) -> tuple[np.ndarray, np.ndarray]:
+    """GAE on the (T, B) grid: terminations do not bootstrap; timeouts bootstrap from their final
+    observation's value, or with ``bootstrap_timeouts=False`` are terminal too (CrowdNav++)."""
+    terminal = ro.terminated if cfg.bootstrap_timeouts else ro.done
+    return gae(ro.scaled_rewards, values, next_values, terminal.astype(float), ro.done.astype(float), cfg.gamma,
+               cfg.gae_lambda)
+
+
 # -- 3. update -------------------------------------------------------------------------------------
 def update(model, agent, ro: Rollout, cfg: PPOConfig, optimizers: dict[str, torch.optim.Optimizer],
            rng: np.random.Generator, accelerator, train_actor: bool) -> dict[str, float]:
@@ -184,9 +192,11 @@ def update(model, agent, ro: Rollout, cfg: PPOConfig, optimizers: dict[str, torc
 
     # GAE on the (T, B) grid; terminations do not bootstrap, timeouts bootstrap from their final obs.
     v = values.cpu().numpy().reshape(T, B)
-    adv, ret = gae(ro.scaled_rewards, v, bootstrap_values(agent, ro, v), ro.terminated.astype(float),
-                   ro.done.astype(float), cfg.gamma, cfg.gae_lambda)
+    adv, ret = advantages(ro, v, bootstrap_values(agent, ro, v), cfg)
     adv_t = torch.as_tensor(adv, dtype=torch.float32, device=device).reshape(values.shape)  # (L, N)
+    per_minibatch = cfg.norm_adv == "minibatch"
+    if not per_minibatch:  # once over this process's rollout (CrowdNav++: eps 1e-5)
+        adv_t = normalize_advantages(adv_t, 1e-5)
     ret_t = torch.as_tensor(ret, dtype=torch.float32, device=device).reshape(values.shape)
 
     stats: dict[str, list[float]] = {}
@@ -198,7 +208,8 @@ def update(model, agent, ro: Rollout, cfg: PPOConfig, optimizers: dict[str, torc
             new = model(*cols[idx])
             flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731  (L, M, ...) -> (L*M, ...)
             losses = ppo_losses(flat(new.logp), flat(old_logp[:, idx]), flat(adv_t[:, idx]), clip, weights,
-                                flat(new.value), flat(ret_t[:, idx]))
+                                flat(new.value), flat(ret_t[:, idx]), old_values=flat(values[:, idx]),
+                                value_clip=cfg.clip_ploss_coef if cfg.clip_vloss else None, normalize=per_minibatch)
             # During the critic warm-up the policy loss has zero weight, so that every parameter
             # still gets a (zero) gradient, as DDP requires.
             loss = (1.0 if train_actor else 0.0) * losses["policy_loss"] + cfg.vf_coef * losses["value_loss"]

@@ -80,18 +80,31 @@ def denoising_discounts(ft_steps: int, gamma_denoising: float) -> np.ndarray:
     return gamma_denoising ** (ft_steps - 1 - np.arange(ft_steps, dtype=np.float64))
 
 
+def normalize_advantages(advantages: Tensor, eps: float = 1e-8) -> Tensor:
+    """(A - mean) / (std + eps) over all of ``advantages``."""
+    return (advantages - advantages.mean()) / (advantages.std() + eps)
+
+
 def ppo_losses(new_logp: Tensor, old_logp: Tensor, advantages: Tensor, clip: Tensor, discount: Tensor,
-               values: Tensor, returns: Tensor) -> dict[str, Tensor]:
+               values: Tensor, returns: Tensor, old_values: Tensor | None = None, value_clip: float | None = None,
+               normalize: bool = True) -> dict[str, Tensor]:
     """PPO losses for a minibatch of env steps ``(M,)`` whose decisions are scored as n parts
     ``(M, n)``: clipped surrogate with a per-part clip ``(n,)`` and advantage weight ``(n,)``
-    (DPPO's denoising discount; 1 for n = 1) on per-minibatch normalized advantages, and
-    ``0.5 (V - return)^2``. Also the diagnostics (no gradient)."""
-    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    (DPPO's denoising discount; 1 for n = 1) on per-minibatch normalized advantages (``normalize``;
+    False: the advantages come normalized over the rollout), and ``0.5 (V - return)^2``, or with
+    ``value_clip`` and the pre-update values ``old_values`` the clipped value loss of OpenAI
+    baselines / CrowdNav++: ``0.5 max((V - R)^2, (V_old + clamp(V - V_old, +-value_clip) - R)^2)``.
+    Also the diagnostics (no gradient)."""
+    adv = normalize_advantages(advantages) if normalize else advantages
     adv = adv[:, None] * discount[None]  # (M, n)
     logratio = new_logp - old_logp
     ratio = logratio.exp()
     policy_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip)).mean()
-    value_loss = 0.5 * ((values - returns) ** 2).mean()
+    if value_clip is None:
+        value_loss = 0.5 * ((values - returns) ** 2).mean()
+    else:
+        clipped = old_values + (values - old_values).clamp(-value_clip, value_clip)
+        value_loss = 0.5 * torch.max((values - returns) ** 2, (clipped - returns) ** 2).mean()
     with torch.no_grad():
         approx_kl = ((ratio - 1) - logratio).mean()
         clipfrac = ((ratio - 1).abs() > clip).float().mean()
