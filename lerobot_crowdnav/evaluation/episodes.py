@@ -22,7 +22,9 @@ from .metrics import EpisodeRecord
 class LearnedPolicy:
     """A lerobot policy driving a batch of envs: observation.state in, (B, 2) velocities in m/s
     out. Chunks are sampled for the whole batch and each slot executes its first
-    ``n_action_steps`` actions (1: replan every step) before taking the next chunk."""
+    ``n_action_steps`` actions (1: replan every step) before taking the next chunk. A recurrent
+    policy (``policy.recurrent``, e.g. crowdnavpp) acts every step and restarts the memory of the
+    slots whose episode just began (``predict_action_chunk(..., episode_start=fresh)``)."""
 
     def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0, use_ema: bool = True):
         import torch
@@ -46,6 +48,7 @@ class LearnedPolicy:
             cfg.use_ema = False  # after loading: the checkpoint's EMA weights stay, unused
         self.pre, self.post = make_pre_post_processors(cfg, pretrained_path=str(path))
         self.n_action_steps = getattr(cfg, "n_action_steps", 1)
+        self.recurrent = bool(getattr(self.policy, "recurrent", False))
         self.generator = torch.Generator(device=device).manual_seed(seed)
         self.chunk: np.ndarray | None = None
         self.index: np.ndarray | None = None
@@ -55,6 +58,13 @@ class LearnedPolicy:
         if self.chunk is None or self.chunk.shape[0] != b:
             self.chunk, self.index = None, np.zeros(b, np.int64)
             fresh = np.ones(b, bool)
+        if self.recurrent:  # every step, the memory restarted where an episode begins
+            with self.torch.inference_mode():
+                batch = self.pre({"observation.state": self.torch.as_tensor(obs, dtype=self.torch.float32)})
+                chunk = self.policy.predict_action_chunk(batch, generator=self.generator,
+                                                         episode_start=self.torch.as_tensor(fresh))
+                self.chunk = self.post(chunk).cpu().numpy()
+            return self.chunk[:, 0]
         need = fresh | (self.index >= self.n_action_steps)
         if need.any():
             with self.torch.inference_mode():

@@ -1,7 +1,8 @@
 """Reinforcement learning: one PPO loop for any actor-critic.
 
 ``ppo`` (the arithmetic) <- ``config`` (PPO and diffusion-PPO settings) <- ``agent`` (the
-actor-critic protocol) <- ``loop`` (collect, advantages, update) <- ``dppo`` (PDPO as an
-actor-critic) <- ``checkpoints``, ``run_log``, ``validation`` <- ``finetune`` (the CLI run).
+actor-critic protocol) <- ``loop`` (collect, advantages, update) <- ``dppo`` (PDPO) and
+``crowdnavpp`` (CrowdNav++) as actor-critics <- ``checkpoints``, ``run_log``, ``validation`` <-
+``trainer`` (the shared PPO run) <- ``finetune`` and ``train_ppo`` (the CLIs).
 See docs/architecture.md.
 """

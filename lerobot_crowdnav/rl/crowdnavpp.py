@@ -1,0 +1,120 @@
+"""CrowdNav++ as an actor-critic for the PPO loop (rl/agent.py): how an action is sampled and
+scored. The network is the plugin's (``lerobot_policy_crowdnavpp``); this side adds the Gaussian
+exploration, the sequence scoring and reading/writing training checkpoints.
+
+    stored["obs"]    (B, 269)   raw observation.state (the policy's processors are identity)
+    stored["action"] (B, 2)     the sampled velocity in m/s, unclipped (the env clips it by norm)
+    memory           (B, 128)   the node GRU's state; zeros = a fresh episode
+    Scores.logp      (L, M, 1)  log N(action; mean, exp(log_std)^2), summed over the 2 dims
+    Scores.value     (L, M)     V from the critic head on the shared trunk
+    Scores.entropy   (L, M)     of the Gaussian, summed over the 2 dims
+
+Actor and critic share the trunk (robot embedding, attentions, GRU), so there is one parameter
+group, "actor": one Adam and one global gradient-norm clip, as the reference trains it (set
+``n_critic_warmup_itr=0``: a warm-up would freeze the whole network).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from lerobot_policy_crowdnavpp import CrowdNavPPConfig, CrowdNavPPPolicy
+from torch import Tensor, nn
+
+from ..sim.config import CrowdSimConfig
+from .agent import Scores, Step
+
+
+class CrowdNavPPAgent(nn.Module):
+    """The actor-critic protocol for a CrowdNav++ policy. Recurrent."""
+
+    recurrent = True
+
+    def __init__(self, policy: CrowdNavPPPolicy):
+        super().__init__()
+        self.policy = policy
+
+    @property
+    def net(self):
+        return self.policy.net
+
+    def initial_memory(self, num_envs: int) -> Tensor:
+        return self.net.initial_memory(num_envs)
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"actor": list(self.policy.parameters())}
+
+    def _dist(self, mean: Tensor) -> torch.distributions.Normal:
+        return torch.distributions.Normal(mean, self.net.log_std.exp())
+
+    @torch.no_grad()
+    def act(self, obs: Tensor, memory: Tensor, explore: bool, generator: torch.Generator) -> Step:
+        """Exploring: mean + exp(log_std) * noise; otherwise the mean (the reference's
+        deterministic evaluation). The action is in m/s, on cpu."""
+        obs = obs.to(self.net.log_std.device)
+        mean, _, memory = self.net.step(obs, memory)
+        action = mean
+        if explore:
+            noise = torch.randn(mean.shape, generator=generator, device=mean.device)
+            action = mean + self.net.log_std.exp() * noise
+        return Step(action.cpu(), {"obs": obs, "action": action}, memory)
+
+    def forward(self, samples: dict[str, Tensor], memory: Tensor, episode_start: Tensor) -> Scores:
+        """M sequences of L steps from their initial memory, restarting where ``episode_start``."""
+        mean, value, _ = self.net.unroll(samples["obs"], memory, episode_start)
+        dist = self._dist(mean)
+        return Scores(dist.log_prob(samples["action"]).sum(-1, keepdim=True), value, dist.entropy().sum(-1))
+
+    @torch.no_grad()
+    def value(self, obs: Tensor, memory: Tensor) -> Tensor:
+        return self.net.step(obs.to(self.net.log_std.device), memory)[1]
+
+    def save(self, path: Path) -> None:
+        """A lerobot pretrained_model directory (config, weights, identity processors): what
+        ``lerobot-crowdnav-eval --policy.path=`` loads."""
+        from lerobot.policies.factory import make_pre_post_processors
+
+        self.policy.save_pretrained(path)
+        pre, post = make_pre_post_processors(self.policy.config)
+        pre.save_pretrained(path)
+        post.save_pretrained(path)
+
+
+def make_agent(sim_cfg: CrowdSimConfig, seed: int, **policy_fields) -> CrowdNavPPAgent:
+    """A fresh agent on cpu, sized to the env's crowd layout, initialized from ``seed``."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    cfg = CrowdNavPPConfig(
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (sim_cfg.obs_dim,))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))}, device="cpu",
+        num_humans=sim_cfg.num_humans, prediction_steps=sim_cfg.prediction_steps, **policy_fields)
+    torch.manual_seed(seed)
+    return CrowdNavPPAgent(CrowdNavPPPolicy(cfg))
+
+
+def load_agent(path: Path) -> CrowdNavPPAgent:
+    """The agent of a crowdnavpp pretrained_model directory, on cpu."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    path = Path(path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
+    kind = json.loads((path / "config.json").read_text()).get("type")
+    if kind != "crowdnavpp":
+        raise ValueError(f"--policy.path={path} holds a {kind!r} policy, not 'crowdnavpp'")
+    register_third_party_plugins()
+    cfg = PreTrainedConfig.from_pretrained(path)
+    cfg.device = "cpu"
+    return CrowdNavPPAgent(CrowdNavPPPolicy.from_pretrained(path, config=cfg))
+
+
+def check_compatible(policy: CrowdNavPPPolicy, sim_cfg: CrowdSimConfig) -> None:
+    cfg = policy.config
+    if (cfg.num_humans, cfg.prediction_steps) != (sim_cfg.num_humans, sim_cfg.prediction_steps) \
+            or cfg.state_dim != sim_cfg.obs_dim:
+        raise ValueError(f"the policy reads {cfg.state_dim}-float observations ({cfg.num_humans} humans, "
+                         f"{cfg.prediction_steps} prediction steps); the env gives {sim_cfg.obs_dim} "
+                         f"({sim_cfg.num_humans} humans, {sim_cfg.prediction_steps} prediction steps)")
