@@ -141,3 +141,176 @@ def test_save_load_round_trip_through_lerobot_plugin_discovery(policy, tmp_path:
     loaded.reset()
     policy.reset()
     torch.testing.assert_close(post(loaded.select_action(batch)), policy.select_action({"observation.state": obs}))
+
+
+# -- PPO options CrowdNav++ needs (default off: PDPO's runs are unchanged) ------------------------
+def test_clipped_value_loss_matches_a_hand_computation():
+    from lerobot_crowdnav.rl.ppo import ppo_losses
+
+    one = torch.ones(1)
+    v = torch.tensor([1.0, 0.0, 2.0])
+    v_old = torch.tensor([0.5, 0.5, 2.1])
+    ret = torch.tensor([2.0, 0.4, 0.0])
+    zeros = torch.zeros(3, 1)
+    plain = ppo_losses(zeros, zeros, torch.randn(3), 0.2 * one, one, v, ret)["value_loss"]
+    clipped = ppo_losses(zeros, zeros, torch.randn(3), 0.2 * one, one, v, ret, old_values=v_old, value_clip=0.2)
+    # clipped V: 0.5 + clamp(0.5) = 0.7; 0.5 + clamp(-0.5) = 0.3; 2.1 + (-0.1) = 2.0
+    by_hand = 0.5 * (max(1.0**2, 1.3**2) + max(0.4**2, 0.1**2) + max(2.0**2, 2.0**2)) / 3
+    assert float(plain) == pytest.approx(0.5 * (1.0 + 0.16 + 4.0) / 3)
+    assert float(clipped["value_loss"]) == pytest.approx(by_hand)
+
+
+def test_advantages_normalized_per_minibatch_or_left_as_given():
+    from lerobot_crowdnav.rl.ppo import normalize_advantages, ppo_losses
+
+    adv = torch.tensor([1.0, 2.0, 6.0])
+    one = torch.ones(1)
+    zeros = torch.zeros(3, 1)  # ratio 1: the policy loss is -mean(advantage used)
+    per_mb = ppo_losses(zeros, zeros, adv, 0.2 * one, one, torch.zeros(3), torch.zeros(3))["policy_loss"]
+    given = ppo_losses(zeros, zeros, adv, 0.2 * one, one, torch.zeros(3), torch.zeros(3), normalize=False)["policy_loss"]
+    assert float(per_mb) == pytest.approx(0.0, abs=1e-6) and float(given) == pytest.approx(-3.0)
+    n = normalize_advantages(adv, 1e-5)
+    std = math.sqrt(((1 - 3) ** 2 + (2 - 3) ** 2 + (6 - 3) ** 2) / 2)  # unbiased, as torch.std
+    torch.testing.assert_close(n, (adv - 3.0) / (std + 1e-5))
+
+
+def test_timeouts_bootstrap_or_are_terminal():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from lerobot_crowdnav.rl.config import PPOConfig
+    from lerobot_crowdnav.rl.loop import advantages
+
+    # One env, two steps: a timeout at t = 0 (final observation's value 5), then a step.
+    ro = SimpleNamespace(scaled_rewards=np.array([[1.0], [2.0]]), terminated=np.array([[False], [False]]),
+                         done=np.array([[True], [False]]))
+    v, nv = np.array([[0.5], [0.25]]), np.array([[5.0], [1.0]])
+    g, lam = 0.9, 0.5
+    adv, _ = advantages(ro, v, nv, PPOConfig(gamma=g, gae_lambda=lam))
+    np.testing.assert_allclose(adv[:, 0], [1.0 + g * 5.0 - 0.5, 2.0 + g * 1.0 - 0.25])
+    adv, ret = advantages(ro, v, nv, PPOConfig(gamma=g, gae_lambda=lam, bootstrap_timeouts=False))
+    np.testing.assert_allclose(adv[:, 0], [1.0 - 0.5, 2.0 + g * 1.0 - 0.25])
+    np.testing.assert_allclose(ret, adv + v)
+
+
+def test_ppo_option_validation():
+    from lerobot_crowdnav.rl.config import PPOConfig
+
+    for bad in (PPOConfig(norm_adv="batch"), PPOConfig(adam_eps=0.0)):
+        with pytest.raises(ValueError):
+            bad.validate()
+    cfg = PPOConfig()
+    assert (cfg.adam_eps, cfg.clip_vloss, cfg.norm_adv, cfg.bootstrap_timeouts) == (1e-8, False, "minibatch", True)
+
+
+# -- the agent and the training CLI (the shared PPO run of rl/trainer.py) -------------------------
+TINY = ["--num_envs=4", "--ppo.n_steps=30", "--ppo.batch_size=60", "--val.n_episodes=2", "--save_freq=120",
+        "--seed=3", "--env.preset=crowdnavpp", "--env.task=CrowdNav-v0"]
+
+
+def train(out: Path, *extra: str) -> list[dict]:
+    import json
+
+    from lerobot_crowdnav.rl.train_ppo import main
+
+    main([f"--output_dir={out}", *TINY, *extra])
+    return [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]
+
+
+def test_agent_scores_a_rollout_as_it_acted():
+    """Collected with exploration, the sequences replayed from the rollout's initial memory with
+    its restarts give the rollout's own memory trajectory: the first minibatch's ratio is 1."""
+    import numpy as np
+    from accelerate import Accelerator
+
+    from lerobot_crowdnav.rl.crowdnavpp import make_agent
+    from lerobot_crowdnav.rl.loop import Collector, update
+    from lerobot_crowdnav.rl.train_ppo import CrowdNavPPPPOConfig
+    from lerobot_crowdnav.sim.config import CrowdSimConfig
+    from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
+
+    sim = CrowdSimConfig(preset="crowdnavpp", compute_intrusion=False).resolve()
+    agent = make_agent(sim, seed=0).eval()
+    collector = Collector(CrowdNavVectorEnv(4, config=sim), agent, None, torch.Generator().manual_seed(0))
+    collector.reset(500_000_000)
+    ro = collector.collect(agent, 30)
+    assert ro.memory0.shape == (4, 128) and ro.stored["obs"].shape == (30, 4, D) and ro.starts[0].all()
+    assert np.abs(ro.stored["action"].numpy()).max() > 1.0  # unclipped samples are stored (std 1 m/s)
+    with torch.no_grad():
+        scores = agent(ro.stored, ro.memory0, torch.as_tensor(ro.starts))
+    assert scores.logp.shape == (30, 4, 1) and scores.value.shape == (30, 4) and scores.entropy.shape == (30, 4)
+    # the entropy of a 2-D Gaussian with std 1
+    torch.testing.assert_close(scores.entropy, torch.full((30, 4), math.log(2 * math.pi * math.e)))
+    cfg = CrowdNavPPPPOConfig(batch_size=60)
+    opt = {name: torch.optim.Adam(p, lr=cfg.actor_lr, eps=cfg.adam_eps) for name, p in agent.param_groups().items()}
+    assert list(opt) == ["actor"] and sum(p.numel() for p in agent.param_groups()["actor"]) == 2_502_021
+    stats = update(agent, agent, ro, cfg, opt, np.random.default_rng(0), Accelerator(cpu=True), train_actor=True)
+    assert stats["update_epochs"] == 5 and math.isfinite(stats["loss/value_loss"])
+
+
+def test_tiny_training_run_writes_a_checkpoint_that_loads_and_evaluates(tmp_path):
+    import json
+
+    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+    from lerobot_crowdnav.evaluation.eval import main as eval_main
+
+    out = tmp_path / "run"
+    records = train(out, "--env_steps=240")
+    assert [r["iteration"] for r in records] == [0, 1, 2]
+    for key in ("loss/policy_loss", "loss/value_loss", "entropy", "approx_kl", "explained_variance",
+                "perf/env_steps_per_s", "val/success_rate"):
+        assert key in records[2], key
+    path = out / "checkpoints" / "last" / "pretrained_model"
+    assert (out / "checkpoints" / "last").resolve().name == "000000240"
+    settings = json.loads((path / "train_ppo_config.json").read_text())
+    assert settings["ppo"]["adam_eps"] == 1e-5 and settings["ppo"]["clip_vloss"] and settings["policy"]["type"] == "crowdnavpp"
+    assert json.loads((path / "config.json").read_text())["type"] == "crowdnavpp"
+    fresh = CrowdNavPPPolicy.from_pretrained(out / "checkpoints" / "best" / "pretrained_model")  # iteration 0 or later
+    trained = CrowdNavPPPolicy.from_pretrained(path)
+    assert trained.parameter_counts()["trainable"] == 2_502_021 and fresh is not None
+    actor = LearnedPolicy(path, "cpu", D)
+    assert actor.recurrent
+    from lerobot_crowdnav.data.hub import policy_card
+
+    card = str(policy_card(path, "local/crowdnavpp"))
+    assert "2,502,021 trainable" in card and "2,502,535" in card and "paper: 2.503 M" in card
+    assert "PPO from scratch for 240 environment steps" in card
+    eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", "--env.preset=crowdnavpp",
+               f"--output_dir={tmp_path / 'eval'}"])
+    assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
+
+
+def test_resume_is_bitwise(tmp_path):
+    straight = train(tmp_path / "a", "--env_steps=360")
+    first = train(tmp_path / "b", "--env_steps=120")
+    assert first[-1]["env_steps"] == 120
+    resumed = train(tmp_path / "b", "--env_steps=360", "--resume=true")
+    assert [r["iteration"] for r in resumed] == [0, 1, 2, 3]
+    for i in (2, 3):
+        assert resumed[i]["rollout_digest"] == straight[i]["rollout_digest"]
+        for key in ("loss/policy_loss", "loss/value_loss", "approx_kl", "train/episodes"):
+            assert resumed[i][key] == straight[i][key], (i, key)
+    with pytest.raises(SystemExit, match="different settings"):
+        train(tmp_path / "b", "--env_steps=480", "--resume=true", "--ppo.clip_vloss=false")
+
+
+def test_bad_policy_type_is_refused(tmp_path):
+    with pytest.raises(SystemExit, match="policy.type"):
+        train(tmp_path / "x", "--policy.type=pdpo")
+
+
+@pytest.mark.parametrize("name, task, preset", [("crowdnavpp_bounded", "BoundedCrowdNav-v0", "paper"),
+                                                ("crowdnavpp_original", "CrowdNav-v0", "crowdnavpp")])
+def test_configs_parse_with_the_reference_ppo(name, task, preset):
+    import draccus
+
+    from lerobot_crowdnav.rl.train_ppo import CrowdNavPPPPOConfig, TrainPPOConfig
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = draccus.parse(TrainPPOConfig, config_path=str(root / "configs" / "rl" / f"{name}.yaml"), args=[])
+    cfg.validate()
+    sim = cfg.env.resolve()
+    assert (sim.task, sim.preset, sim.randomize_attributes) == (task, preset, True)
+    assert cfg.ppo == CrowdNavPPPPOConfig() and (cfg.num_envs, cfg.env_steps, cfg.seed) == (16, 10_000_000, 425)
+    assert cfg.ppo.batch_size // cfg.ppo.n_steps == cfg.num_envs // 2  # 2 minibatches of whole sequences

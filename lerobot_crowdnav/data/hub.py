@@ -114,6 +114,8 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
     from ..evaluation.parameters import parameter_counts
 
     config = json.loads((pretrained / "config.json").read_text())
+    if config.get("type") == "crowdnavpp":
+        return crowdnavpp_card(pretrained, repo_id, config, metrics)
     train = json.loads((pretrained / "train_config.json").read_text()) if (pretrained / "train_config.json").exists() else {}
     finetune_path = pretrained / "finetune_config.json"
     finetune = json.loads(finetune_path.read_text()) if finetune_path.exists() else None
@@ -184,6 +186,66 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")
 
 
+# The reference network (Shuijing725/CrowdNav_Prediction_AttnGraph, selfAttn_merge_srnn) holds an
+# unused Linear(256, 2) (514 parameters) that the plugin leaves out; the paper counts it.
+CROWDNAVPP_DEAD_HEAD = 514
+CROWDNAVPP_REFERENCE = 2_502_535
+
+
+def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None = None):
+    """Model card of a CrowdNav++ policy trained by lerobot-crowdnav-train-ppo: architecture, the
+    parameter count against the reference's, the PPO run, the evaluation table."""
+    import json
+    import math
+
+    from huggingface_hub import ModelCard, ModelCardData
+    from safetensors import safe_open
+
+    from ..evaluation.metrics import markdown_header, markdown_row
+
+    with safe_open(str(pretrained / "model.safetensors"), "pt") as f:
+        n = sum(math.prod(f.get_slice(k).get_shape()) for k in f.keys())
+    run_path = pretrained / "train_ppo_config.json"
+    run = json.loads(run_path.read_text()) if run_path.exists() else None
+    lines = [
+        f"# {repo_id}", "",
+        "CrowdNav++ (attention-graph recurrent RL policy for robot crowd navigation, Liu et al. ICRA 2023), a "
+        "lerobot policy (`--policy.type=crowdnavpp`) trained from scratch by PPO with lerobot-crowdnav.", "",
+        "## Architecture", "",
+        f"- Input: `observation.state` ({config.get('num_humans')} humans, {config.get('prediction_steps')} prediction "
+        "steps), read raw; output: one world-frame velocity (m/s), the mean of a Gaussian (the env clips it by norm).",
+        f"- Robot embedding {config.get('feature_size')}; human-human {config.get('attn_heads')}-head self-attention "
+        f"(width {config.get('attn_size')}); robot-human attention ({config.get('attention_size')}-d); node GRU "
+        f"{config.get('node_rnn_size')}; actor and critic MLPs {config.get('head_hidden_size')} x 2 (Tanh).",
+        f"- Parameters: {n:,} trainable ({n / 1e6:.3f} M); the reference network, whose unused "
+        f"`human_node_final_linear` adds {CROWDNAVPP_DEAD_HEAD}: {n + CROWDNAVPP_DEAD_HEAD:,} "
+        f"({(n + CROWDNAVPP_DEAD_HEAD) / 1e6:.3f} M; reference sizes: {CROWDNAVPP_REFERENCE:,}; paper: 2.503 M).", "",
+        "## Training", "",
+    ]
+    if run:
+        ppo = run["ppo"]
+        lines.append(
+            f"- PPO from scratch for {run['env_steps_done']} environment steps in `{run['env']['task']}` "
+            f"({run['env']['preset']} preset), {run['num_envs']} envs x {run['world_size']} process(es), seed "
+            f"{run['seed']}: Adam lr {ppo['actor_lr']} eps {ppo['adam_eps']}, {ppo['n_steps']}-step rollouts, "
+            f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef']}, clipped value loss {ppo['clip_vloss']}, "
+            f"gradient norm {ppo['max_grad_norm']}; `train_ppo_config.json` has every setting.")
+    else:
+        lines.append("- Not trained by lerobot-crowdnav-train-ppo (no `train_ppo_config.json`).")
+    lines += ["", "## Evaluation", ""]
+    if metrics:
+        bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
+        lines += [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
+                  f"{metrics['split']} episodes (`lerobot-crowdnav-eval`):", "",
+                  markdown_header(bounded), markdown_row({k: (float('nan') if v is None else v) for k, v in metrics.items()
+                                                         if k in ('sr', 'cr', 'tr', 'nt', 'pl', 'itr', 'sd', 'oob')}, bounded)]
+    else:
+        lines.append("Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`.")
+    data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
+                         tags=["robotics", "lerobot", "crowdnavpp", "reinforcement-learning", "crowd-navigation"])
+    return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")
+
+
 def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path, overwrite: bool = False,
                        metrics_path: str | Path | None = None, curve: str | Path | None = None,
                        recipe: dict | None = None) -> Path:
@@ -200,7 +262,8 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
     if pickles:
         raise ValueError(f"refusing pickled files {pickles}: the hub format holds safetensors only")
     files = [p for p in pretrained.iterdir() if p.is_file() and (
-        p.name in ("config.json", "model.safetensors", "critic.safetensors", "train_config.json", "finetune_config.json")
+        p.name in ("config.json", "model.safetensors", "critic.safetensors", "train_config.json", "finetune_config.json",
+                   "train_ppo_config.json")
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
     curve = Path(curve) if curve else None
