@@ -101,6 +101,20 @@ def split_repo_id(repo_id: str) -> tuple[str, str]:
     return parts[0], parts[1]
 
 
+def evaluation_lines(metrics: dict | None) -> list[str]:
+    """A model card's evaluation section: the metrics.json of lerobot-crowdnav-eval as a table."""
+    from ..evaluation.metrics import markdown_header, markdown_row
+
+    lines = ["", "## Evaluation", ""]
+    if not metrics:
+        return lines + ["Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`."]
+    bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
+    row = {k: (float("nan") if v is None else v) for k, v in metrics.items() if k in ("sr", "cr", "tr", "nt", "pl", "itr", "sd", "oob")}
+    return lines + [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
+                    f"{metrics['split']} episodes (`lerobot-crowdnav-eval`):", "", markdown_header(bounded),
+                    markdown_row(row, bounded)]
+
+
 def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, recipe: dict | None = None,
                 curve: str | None = None):
     """Model card: architecture, training data and budget, parameter counts, evaluation table;
@@ -110,7 +124,6 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
 
     from huggingface_hub import ModelCard, ModelCardData
 
-    from ..evaluation.metrics import markdown_header, markdown_row
     from ..evaluation.parameters import parameter_counts
 
     config = json.loads((pretrained / "config.json").read_text())
@@ -156,15 +169,7 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
             "`finetune_config.json` has every setting.",
         ]
-    lines += ["", "## Evaluation", ""]
-    if metrics:
-        bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
-        lines += [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
-                  f"{metrics['split']} episodes (`lerobot-crowdnav-eval`):", "",
-                  markdown_header(bounded), markdown_row({k: (float('nan') if v is None else v) for k, v in metrics.items()
-                                                         if k in ('sr', 'cr', 'tr', 'nt', 'pl', 'itr', 'sd', 'oob')}, bounded)]
-    else:
-        lines.append("Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`.")
+    lines += evaluation_lines(metrics)
     if curve:
         lines += ["", "## Learning curve", "", f"![diffusion-PPO learning curve]({curve})"]
     if recipe:
@@ -201,8 +206,6 @@ def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict 
     from huggingface_hub import ModelCard, ModelCardData
     from safetensors import safe_open
 
-    from ..evaluation.metrics import markdown_header, markdown_row
-
     with safe_open(str(pretrained / "model.safetensors"), "pt") as f:
         n = sum(math.prod(f.get_slice(k).get_shape()) for k in f.keys())
     run_path = pretrained / "train_ppo_config.json"
@@ -232,15 +235,7 @@ def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict 
             f"gradient norm {ppo['max_grad_norm']}; `train_ppo_config.json` has every setting.")
     else:
         lines.append("- Not trained by lerobot-crowdnav-train-ppo (no `train_ppo_config.json`).")
-    lines += ["", "## Evaluation", ""]
-    if metrics:
-        bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
-        lines += [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
-                  f"{metrics['split']} episodes (`lerobot-crowdnav-eval`):", "",
-                  markdown_header(bounded), markdown_row({k: (float('nan') if v is None else v) for k, v in metrics.items()
-                                                         if k in ('sr', 'cr', 'tr', 'nt', 'pl', 'itr', 'sd', 'oob')}, bounded)]
-    else:
-        lines.append("Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`.")
+    lines += evaluation_lines(metrics)
     data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
                          tags=["robotics", "lerobot", "crowdnavpp", "reinforcement-learning", "crowd-navigation"])
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")

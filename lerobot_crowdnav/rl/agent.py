@@ -21,6 +21,7 @@ denoising chains are the actor-critic's own business.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple, Protocol
 
 import torch
@@ -53,3 +54,24 @@ class ActorCritic(Protocol):
     def value(self, obs: Tensor, memory: Tensor | None) -> Tensor: ...
 
     def param_groups(self) -> dict[str, list[torch.nn.Parameter]]: ...
+
+
+def read_policy_config(path: Path, kind: str, purpose: str):
+    """The lerobot config of the ``pretrained_model`` directory ``path`` (device cpu), which must
+    hold a ``kind`` policy (plugins registered); a clear error otherwise. ``purpose`` ends the
+    wrong-type message (what this command does with it)."""
+    import json
+
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    path = Path(path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
+    found = json.loads((path / "config.json").read_text()).get("type")
+    if found != kind:
+        raise ValueError(f"--policy.path={path} holds a {found!r} policy; {purpose}")
+    register_third_party_plugins()
+    cfg = PreTrainedConfig.from_pretrained(path)
+    cfg.device = "cpu"
+    return cfg

@@ -16,7 +16,6 @@ group, "actor": one Adam and one global gradient-norm clip, as the reference tra
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
@@ -24,7 +23,7 @@ from lerobot_policy_crowdnavpp import CrowdNavPPConfig, CrowdNavPPPolicy
 from torch import Tensor, nn
 
 from ..sim.config import CrowdSimConfig
-from .agent import Scores, Step
+from .agent import Scores, Step, read_policy_config
 
 
 class CrowdNavPPAgent(nn.Module):
@@ -96,18 +95,8 @@ def make_agent(sim_cfg: CrowdSimConfig, seed: int, **policy_fields) -> CrowdNavP
 
 def load_agent(path: Path) -> CrowdNavPPAgent:
     """The agent of a crowdnavpp pretrained_model directory, on cpu."""
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.utils.import_utils import register_third_party_plugins
-
     path = Path(path)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
-    kind = json.loads((path / "config.json").read_text()).get("type")
-    if kind != "crowdnavpp":
-        raise ValueError(f"--policy.path={path} holds a {kind!r} policy, not 'crowdnavpp'")
-    register_third_party_plugins()
-    cfg = PreTrainedConfig.from_pretrained(path)
-    cfg.device = "cpu"
+    cfg = read_policy_config(path, "crowdnavpp", "this command trains CrowdNav++ ('crowdnavpp')")
     return CrowdNavPPAgent(CrowdNavPPPolicy.from_pretrained(path, config=cfg))
 
 

@@ -20,7 +20,6 @@ split hold the critic as ``value.*`` in ``model.safetensors``; it is read from t
 from __future__ import annotations
 
 import copy
-import json
 from pathlib import Path
 
 import torch
@@ -29,7 +28,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from ..sim.config import CrowdSimConfig
-from .agent import Scores, Step
+from .agent import Scores, Step, read_policy_config
 from .config import DiffusionPPOConfig
 
 OBS = "observation.state"
@@ -128,19 +127,10 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
     """The agent to fine-tune, on cpu. A BC checkpoint becomes a fine-tuning policy whose trained
     and frozen actors both start from its sampling (EMA) weights, with a fresh critic; a
     fine-tuned checkpoint is taken as it is, critic included."""
-    from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.utils.import_utils import register_third_party_plugins
 
     path = Path(path)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
-    kind = json.loads((path / "config.json").read_text()).get("type")
-    if kind != "pdpo":
-        raise ValueError(f"--policy.path={path} holds a {kind!r} policy; diffusion PPO fine-tunes PDPO ('pdpo')")
-    register_third_party_plugins()
-    pcfg = PreTrainedConfig.from_pretrained(path)
-    pcfg.device = "cpu"
+    pcfg = read_policy_config(path, "pdpo", "diffusion PPO fine-tunes PDPO ('pdpo')")
     ft = cfg.ft_denoising_steps
     if pcfg.ft_denoising_steps and pcfg.ft_denoising_steps != ft:
         raise ValueError(f"{path} was fine-tuned with ft_denoising_steps={pcfg.ft_denoising_steps}, not {ft}")
