@@ -75,3 +75,13 @@ def read_policy_config(path: Path, kind: str, purpose: str):
     cfg = PreTrainedConfig.from_pretrained(path)
     cfg.device = "cpu"
     return cfg
+
+
+def check_observation_layout(policy_cfg, sim_cfg) -> None:
+    """A policy config (num_humans, prediction_steps, state_dim) must read the env's observations."""
+    cfg = policy_cfg
+    if (cfg.num_humans, cfg.prediction_steps) != (sim_cfg.num_humans, sim_cfg.prediction_steps) \
+            or cfg.state_dim != sim_cfg.obs_dim:
+        raise ValueError(f"the policy reads {cfg.state_dim}-float observations ({cfg.num_humans} humans, "
+                         f"{cfg.prediction_steps} prediction steps); the env gives {sim_cfg.obs_dim} "
+                         f"({sim_cfg.num_humans} humans, {sim_cfg.prediction_steps} prediction steps)")

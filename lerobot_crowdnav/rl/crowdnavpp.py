@@ -23,7 +23,7 @@ from lerobot_policy_crowdnavpp import CrowdNavPPConfig, CrowdNavPPPolicy
 from torch import Tensor, nn
 
 from ..sim.config import CrowdSimConfig
-from .agent import Scores, Step, read_policy_config
+from .agent import Scores, Step, check_observation_layout, read_policy_config
 
 
 class CrowdNavPPAgent(nn.Module):
@@ -101,9 +101,4 @@ def load_agent(path: Path) -> CrowdNavPPAgent:
 
 
 def check_compatible(policy: CrowdNavPPPolicy, sim_cfg: CrowdSimConfig) -> None:
-    cfg = policy.config
-    if (cfg.num_humans, cfg.prediction_steps) != (sim_cfg.num_humans, sim_cfg.prediction_steps) \
-            or cfg.state_dim != sim_cfg.obs_dim:
-        raise ValueError(f"the policy reads {cfg.state_dim}-float observations ({cfg.num_humans} humans, "
-                         f"{cfg.prediction_steps} prediction steps); the env gives {sim_cfg.obs_dim} "
-                         f"({sim_cfg.num_humans} humans, {sim_cfg.prediction_steps} prediction steps)")
+    check_observation_layout(policy.config, sim_cfg)

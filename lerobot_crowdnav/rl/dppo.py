@@ -28,7 +28,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from ..sim.config import CrowdSimConfig
-from .agent import Scores, Step, read_policy_config
+from .agent import Scores, Step, check_observation_layout, read_policy_config
 from .config import DiffusionPPOConfig
 
 OBS = "observation.state"
@@ -162,12 +162,7 @@ def _saved_critic(path: Path) -> dict[str, Tensor]:
 
 
 def check_compatible(policy: PDPOPolicy, sim_cfg: CrowdSimConfig) -> None:
-    cfg = policy.config
-    if (cfg.num_humans, cfg.prediction_steps) != (sim_cfg.num_humans, sim_cfg.prediction_steps) \
-            or cfg.state_dim != sim_cfg.obs_dim:
-        raise ValueError(f"the policy reads {cfg.state_dim}-float observations ({cfg.num_humans} humans, "
-                         f"{cfg.prediction_steps} prediction steps); the env gives {sim_cfg.obs_dim} "
-                         f"({sim_cfg.num_humans} humans, {sim_cfg.prediction_steps} prediction steps)")
-    if cfg.n_action_steps != 1:
+    check_observation_layout(policy.config, sim_cfg)
+    if policy.config.n_action_steps != 1:
         raise ValueError("diffusion PPO executes the first action of each chunk (receding horizon): "
-                         f"the policy has n_action_steps={cfg.n_action_steps}")
+                         f"the policy has n_action_steps={policy.config.n_action_steps}")
