@@ -35,3 +35,21 @@ def mask_slice(num_humans: int, prediction_steps: int) -> slice:
 
 def obs_dim(num_humans: int, prediction_steps: int) -> int:
     return mask_slice(num_humans, prediction_steps).stop
+
+
+def check_policy_features(config, policy: str) -> None:
+    """A lerobot policy config reading this layout must have the state input of its size
+    (``config.num_humans``, ``config.prediction_steps``) and a 2-D velocity action."""
+    from lerobot.configs.types import FeatureType
+    from lerobot.utils.constants import ACTION, OBS_STATE
+
+    state = config.input_features.get(OBS_STATE)
+    if state is None or state.type is not FeatureType.STATE:
+        raise ValueError(f"{policy} needs the state input {OBS_STATE!r}, got {list(config.input_features)}")
+    size = obs_dim(config.num_humans, config.prediction_steps)
+    if tuple(state.shape) != (size,):
+        raise ValueError(f"{OBS_STATE} has shape {tuple(state.shape)}, but num_humans={config.num_humans} and "
+                         f"prediction_steps={config.prediction_steps} need ({size},)")
+    action = config.output_features.get(ACTION)
+    if action is None or tuple(action.shape) != (2,):
+        raise ValueError(f"{policy} outputs 2-D velocities as {ACTION!r}, got {config.output_features}")

@@ -151,8 +151,9 @@ class Pipeline:
             try:
                 run()
             finally:
-                self._add_wall_time(name, time.perf_counter() - start)
-            stage = Stage(name, argv, time.perf_counter() - start)
+                elapsed = time.perf_counter() - start
+                self._add_wall_time(name, elapsed)
+            stage = Stage(name, argv, elapsed)
         self.stages[name] = stage
         return stage
 

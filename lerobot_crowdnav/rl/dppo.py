@@ -99,7 +99,9 @@ class DiffusionPPOAgent(nn.Module):
         chain = self.policy.sample_chain(state, generator, self.cfg.min_sampling_denoising_std if explore else None,
                                          latent)
         action = self.post(chain[:, -1, 0].clamp(-1, 1)).cpu()  # (B, 2)
-        stored = {"state": state, "chain": chain} if latent is None else {"state": state, "chain": chain, "latent": latent}
+        stored = {"state": state, "chain": chain}
+        if latent is not None:
+            stored["latent"] = latent
         return Step(action, stored, None)
 
     def forward(self, samples: dict[str, Tensor], memory: None, episode_start: Tensor) -> Scores:

@@ -10,11 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lerobot.configs.policies import PreTrainedConfig
-from lerobot.configs.types import FeatureType, NormalizationMode
+from lerobot.configs.types import NormalizationMode
 from lerobot.optim.optimizers import AdamConfig
-from lerobot.utils.constants import ACTION, OBS_STATE
 
-from lerobot_crowdnav.layout import SELF_DIM, human_row_dim, obs_dim
+from lerobot_crowdnav.layout import check_policy_features, SELF_DIM, human_row_dim, obs_dim
 
 
 @PreTrainedConfig.register_subclass("crowdnavpp")
@@ -89,15 +88,7 @@ class CrowdNavPPConfig(PreTrainedConfig):
         return human_row_dim(self.prediction_steps)
 
     def validate_features(self) -> None:
-        state = self.input_features.get(OBS_STATE)
-        if state is None or state.type is not FeatureType.STATE:
-            raise ValueError(f"CrowdNav++ needs the state input {OBS_STATE!r}, got {list(self.input_features)}")
-        if tuple(state.shape) != (self.state_dim,):
-            raise ValueError(f"{OBS_STATE} has shape {tuple(state.shape)}, but num_humans={self.num_humans} and "
-                             f"prediction_steps={self.prediction_steps} need ({self.state_dim},)")
-        action = self.output_features.get(ACTION)
-        if action is None or tuple(action.shape) != (2,):
-            raise ValueError(f"CrowdNav++ outputs 2-D velocities as {ACTION!r}, got {self.output_features}")
+        check_policy_features(self, "CrowdNav++")
 
     def get_optimizer_preset(self) -> AdamConfig:
         return AdamConfig(lr=self.optimizer_lr, eps=self.optimizer_eps, grad_clip_norm=self.optimizer_grad_clip_norm)

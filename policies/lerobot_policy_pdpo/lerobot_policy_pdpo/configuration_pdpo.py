@@ -5,11 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lerobot.configs.policies import PreTrainedConfig
-from lerobot.configs.types import FeatureType, NormalizationMode
+from lerobot.configs.types import NormalizationMode
 from lerobot.optim.optimizers import AdamWConfig
-from lerobot.utils.constants import ACTION, OBS_STATE
 
-from lerobot_crowdnav.layout import obs_dim
+from lerobot_crowdnav.layout import check_policy_features, obs_dim
 
 
 @PreTrainedConfig.register_subclass("pdpo")
@@ -115,15 +114,7 @@ class PDPOConfig(PreTrainedConfig):
         return self.latent_mlp_dims[-1]
 
     def validate_features(self) -> None:
-        state = self.input_features.get(OBS_STATE)
-        if state is None or state.type is not FeatureType.STATE:
-            raise ValueError(f"PDPO needs the state input {OBS_STATE!r}, got {list(self.input_features)}")
-        if tuple(state.shape) != (self.state_dim,):
-            raise ValueError(f"{OBS_STATE} has shape {tuple(state.shape)}, but num_humans={self.num_humans} and "
-                             f"prediction_steps={self.prediction_steps} need ({self.state_dim},)")
-        action = self.output_features.get(ACTION)
-        if action is None or tuple(action.shape) != (2,):
-            raise ValueError(f"PDPO outputs 2-D velocities as {ACTION!r}, got {self.output_features}")
+        check_policy_features(self, "PDPO")
 
     def get_optimizer_preset(self) -> AdamWConfig:
         return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay,
