@@ -46,6 +46,11 @@ from .evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, T
 from .sim.config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
 
 SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
+# The trained models shipped in the repository (hub format: models/<org>/<name>), made by the
+# recipes (docs/recipes.md).
+SHIPPED_MODELS = Path(__file__).resolve().parents[1] / "models" / "lerobot-crowdnav"
+FINETUNED_LABEL = {5: "PDPO (H = 5, fine-tuned)", 1: "PDPO w/o action chunk (H = 1, fine-tuned)"}
+CROWDNAVPP_LABEL = "CrowdNav++ (Const. Vel.)"
 TITLE = {"BoundedCrowdNav-v0": "Bounded CrowdNav", "CrowdNav-v0": "original CrowdNav"}
 
 
@@ -54,6 +59,12 @@ class MainConfig:
     # Run name: everything goes to <output_root>/<run>/.
     run: str = "main"
     output_root: Path = Path("outputs")
+    # Trained models to evaluate instead of training: a directory of hub-format model directories
+    # named pdpo_<task>_h<H> and crowdnavpp_<task> (<task> = bounded | original). The job then
+    # evaluates them and the baselines on the test seeds, draws the figures and writes the report:
+    # no demonstrations, no training. Default: the models shipped in the repository. null trains
+    # every policy from scratch with the budget below (configs/main/retrain.yaml: the recipes').
+    models: Path | None = SHIPPED_MODELS
     # Benchmarks, each with its own demonstrations and policies.
     tasks: list[str] = field(default_factory=lambda: ["BoundedCrowdNav-v0", "CrowdNav-v0"])
     # Simulator preset (paper | crowdnavpp).
@@ -85,7 +96,7 @@ class MainConfig:
     # Training seeds (pretraining and fine-tuning); tables show mean +- std over them.
     seeds: list[int] = field(default_factory=lambda: [1000])
     # Test episodes per method, the first seeds of the test split (paper: 500).
-    test_episodes: int = 100
+    test_episodes: int = 500
     # Figures: the test episode drawn, its steps and the chunks sampled per step.
     figure_episode: int = 0
     figure_steps: list[int] = field(default_factory=lambda: [0, 4, 8, 12, 16])
@@ -112,6 +123,9 @@ class MainConfig:
         test_size = SEED_SPLITS["test"][1] - SEED_SPLITS["test"][0]
         if self.test_episodes > test_size or not 0 <= self.figure_episode < test_size:
             raise ValueError(f"--test_episodes and --figure_episode must fit the {test_size} test seeds")
+        if self.models is not None and not self.models.is_dir():
+            raise ValueError(f"--models={self.models} is not a directory of trained models; pass --models=null "
+                             "(or a training config such as configs/main/retrain.yaml) to train from scratch")
 
     @property
     def root(self) -> Path:
@@ -120,14 +134,16 @@ class MainConfig:
 
 @dataclass(frozen=True)
 class Evaluation:
-    """One policy evaluated on the test seeds: a built-in (``policy`` None) or a checkpoint
-    trained with ``horizon`` and ``seed`` (``finetuned``: the diffusion-PPO ``best``)."""
+    """One policy evaluated on the test seeds: a built-in (``policy`` None), a checkpoint trained
+    by this run with ``horizon`` and ``seed`` (``finetuned``: the diffusion-PPO ``best``), or a
+    ``shipped`` model directory."""
 
     name: str  # the directory under eval/<task>/
     policy: Path | None = None
     horizon: int | None = None
     seed: int | None = None
     finetuned: bool = False
+    shipped: bool = False
 
 
 class Pipeline:
@@ -260,15 +276,40 @@ class Pipeline:
 
     def methods(self, task: str) -> list[tuple[str, list[Evaluation]]]:
         """The table rows: (label, the evaluations averaged in it, one per training seed)."""
+        rows = [("ORCA", [Evaluation("orca")]), ("straight", [Evaluation("straight")])]
+        if self.cfg.models is not None:
+            return rows + [(label, [ev]) for label, ev in self.shipped(task)]
         h0 = self.main_horizon
-        rows = [("ORCA", [Evaluation("orca")]), ("straight", [Evaluation("straight")]),
-                (f"PDPO pretrained only (H = {h0}, BC)",
-                 [Evaluation(f"pdpo_bc_h{h0}_s{s}", self.train_dir(task, h0, s) / "checkpoints" / "last" / "pretrained_model", h0, s)
-                  for s in self.cfg.seeds])]
+        rows.append((f"PDPO pretrained only (H = {h0}, BC)",
+                     [Evaluation(f"pdpo_bc_h{h0}_s{s}", self.train_dir(task, h0, s) / "checkpoints" / "last" / "pretrained_model", h0, s)
+                      for s in self.cfg.seeds]))
         for h in sorted(self.cfg.horizons):
-            label = "PDPO w/o action chunk (H = 1, fine-tuned)" if h == 1 else f"PDPO (H = {h}, fine-tuned)"
-            rows.append((label, [self.finetuned(task, h, s) for s in self.cfg.seeds]))
+            rows.append((FINETUNED_LABEL.get(h, f"PDPO (H = {h}, fine-tuned)"), [self.finetuned(task, h, s) for s in self.cfg.seeds]))
         return rows
+
+    def shipped_names(self, task: str) -> dict[str, str]:
+        """Row label -> the model directory's name, for every policy the job can show."""
+        short = SHORT[task]
+        return {FINETUNED_LABEL[1]: f"pdpo_{short}_h1", FINETUNED_LABEL[5]: f"pdpo_{short}_h5",
+                CROWDNAVPP_LABEL: f"crowdnavpp_{short}"}
+
+    def shipped(self, task: str) -> list[tuple[str, Evaluation]]:
+        """The shipped models of ``task`` that exist in ``--models``, as table rows."""
+        found = []
+        for label, name in self.shipped_names(task).items():
+            path = self.cfg.models / name
+            if (path / "model.safetensors").exists():
+                config = json.loads((path / "config.json").read_text())
+                horizon = config["horizon"] if config.get("type") == "pdpo" else None
+                found.append((label, Evaluation(name, path, horizon, shipped=True)))
+        return found
+
+    def figure_policy(self, task: str) -> Evaluation | None:
+        """The PDPO policy drawn in the figures: H = 5 when there is one."""
+        if self.cfg.models is None:
+            return self.finetuned(task, self.main_horizon, self.cfg.seeds[0])
+        pdpo = sorted((ev for _, ev in self.shipped(task) if ev.horizon is not None), key=lambda ev: ev.horizon != 5)
+        return pdpo[0] if pdpo else None
 
     def eval_dir(self, task: str, name: str) -> Path:
         return self.root / "eval" / SHORT[task] / name
@@ -315,20 +356,33 @@ class Pipeline:
                         lambda p=pretrained, r=policy_repo, m=metrics, c=curve, rc=recipe: push_policy_to_dir(
                             p, r, hub, True, m, c if c.exists() else None, rc))
 
-    def figures(self, task: str) -> Stage:
+    def figures(self, task: str) -> tuple[Stage | None, list[tuple[str, Path]]]:
+        """Storyboard and multimodality of the PDPO policy (none without one), and the learning
+        curves: (caption, image) of this run's fine-tuning, or each shipped model's card curve."""
+        from .data.hub import CURVE_FILE
         from .evaluation.figures import record_snapshots
         from .evaluation.plots import plot_finetune_curves, plot_multimodality, plot_storyboard
 
         out = self.figures_dir(task)
         seed = self.cfg.seeds[0]
-        h_main = self.main_horizon
-        policy = self.finetuned(task, h_main, seed).policy
+        if self.cfg.models is None:
+            copies = []
+            curves = [("Fine-tuning: training success rate and average episode reward against environment steps "
+                       "(lines: training episodes, smoothed; markers: deterministic validation).", out / "finetune_curves.png")]
+        else:  # each shipped model's curve, from its card
+            copies = [(ev.policy / CURVE_FILE, out / f"curve_{ev.name}.png", label)
+                      for label, ev in self.shipped(task) if (ev.policy / CURVE_FILE).exists()]
+            curves = [(f"{label}: the learning curve from its model card (`{src.parent.name}`).", dst) for src, dst, label in copies]
+        shown = self.figure_policy(task)
+        if shown is None:
+            return None, []
+        policy = shown.policy
         episode_seed = split_seeds("test", self.cfg.figure_episode + 1)[-1]
-        paths = {"storyboard": out / "storyboard.png", "multimodality": out / "multimodality.png",
-                 "curves": out / "finetune_curves.png"}
+        paths = {"storyboard": out / "storyboard.png", "multimodality": out / "multimodality.png"}
         steps = ",".join(map(str, self.cfg.figure_steps))
         argv = ["python", "-m", "lerobot_crowdnav.evaluation.figures", f"--policy.path={policy}", *self._env_flags(task),
                 f"--seed={episode_seed}", f"--steps={steps}", f"--n_samples={self.cfg.figure_samples}", f"--output_dir={out}"]
+        label = FINETUNED_LABEL.get(shown.horizon, f"PDPO (H = {shown.horizon}, fine-tuned)")
 
         def run() -> None:
             sim_cfg = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve()
@@ -336,53 +390,63 @@ class Pipeline:
                                      device=self.device or "cpu")
             walls = sim_cfg.arena_size if sim_cfg.bounded else None
             plot_storyboard(snaps, paths["storyboard"], sim_cfg.sensing_range, sim_cfg.dt, arena_size=walls,
-                            title=f"{TITLE[task]}, test episode {episode_seed}: PDPO (H = {h_main}, fine-tuned)")
+                            title=f"{TITLE[task]}, test episode {episode_seed}: {label}")
             plot_multimodality(snaps, paths["multimodality"], sim_cfg.sensing_range, sim_cfg.dt, arena_size=walls,
                                title=f"{TITLE[task]}, test episode {episode_seed}: {self.cfg.figure_samples} chunks "
                                      "sampled per observation")
+            for src, dst, _ in copies:
+                shutil.copyfile(src, dst)
+            if self.cfg.models is not None:
+                return
             runs = {}
             for h in sorted(self.cfg.horizons, reverse=True):
                 progress = self.finetune_dir(task, h, seed) / "progress.jsonl"
-                label = "PDPO w/o action chunk (H = 1)" if h == 1 else f"PDPO (H = {h})"
-                runs[label] = [json.loads(line) for line in progress.read_text().splitlines()]
-            plot_finetune_curves(runs, paths["curves"])
+                runs[FINETUNED_LABEL.get(h, f"PDPO (H = {h})").replace(", fine-tuned", "")] = [
+                    json.loads(line) for line in progress.read_text().splitlines()]
+            plot_finetune_curves(runs, curves[0][1])
 
-        return self._stage(f"figures {SHORT[task]}", argv, all(p.exists() for p in paths.values()) and not self.cfg.rerun_eval, run)
+        done = all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval
+        return self._stage(f"figures {SHORT[task]}", argv, done, run), curves
 
     def figures_dir(self, task: str) -> Path:
         return self.root / "figures" / SHORT[task]
 
     # -- the whole job -------------------------------------------------------------------------
+    def train(self, task: str) -> dict[tuple[int, int], tuple[Stage, Stage]]:
+        """Demonstrations, then every policy's pretraining and fine-tuning: (H, seed) -> stages."""
+        self.collect(task)
+        return {(h, seed): (self.pretrain(task, h, seed), self.finetune(task, h, seed))
+                for seed in self.cfg.seeds for h in self.cfg.horizons}
+
     def run(self) -> Path:
         start = time.perf_counter()
         self.root.mkdir(parents=True, exist_ok=True)
         (self.root / "main_config.json").write_text(json.dumps(draccus.encode(self.cfg), indent=2, default=str))
         tasks = []
         for task in self.cfg.tasks:
-            self.collect(task)
-            trained: dict[tuple[int, int], tuple[Stage, Stage]] = {}
-            for seed in self.cfg.seeds:
-                for h in self.cfg.horizons:
-                    trained[h, seed] = self.pretrain(task, h, seed), self.finetune(task, h, seed)
+            trained = self.train(task) if self.cfg.models is None else {}
             methods = []
             for label, evals in self.methods(task):
                 evaluated = []
                 for ev in evals:
                     stage = self.evaluate(task, ev)
-                    pretrain, finetune = trained[ev.horizon, ev.seed] if ev.policy is not None else (None, None)
+                    pretrain, finetune = trained.get((ev.horizon, ev.seed), (None, None))
                     evaluated.append(Evaluated(ev.name, self.eval_dir(task, ev.name), stage, ev.policy, ev.seed,
-                                               pretrain, finetune if ev.finetuned else None))
+                                               pretrain, finetune if ev.finetuned else None, ev.shipped))
                 methods.append(Method(label, evaluated))
-            self.push(task)
-            figures = self.figures(task)
+            if self.cfg.models is None:
+                self.push(task)
+            figures, curves = self.figures(task)
             bounded = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().bounded
-            tasks.append(TaskResults(task, TITLE[task], SHORT[task], methods, self.figures_dir(task), figures,
-                                     boundary_audit=not bounded))
+            shown = {method.label for method in methods}
+            missing = [name for label, name in self.shipped_names(task).items() if label not in shown] if self.cfg.models else []
+            tasks.append(TaskResults(task, TITLE[task], SHORT[task], methods, self.figures_dir(task), figures, curves,
+                                     boundary_audit=not bounded, missing_models=missing))
         c = self.cfg
-        budget = Budget(c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps,
-                        list(c.seeds), c.test_episodes)
+        budget = None if c.models is not None else Budget(
+            c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps, list(c.seeds), c.test_episodes)
         report = write_report(ReportInputs(self.root, budget, tasks, list(self.stages.values()),
-                                           time.perf_counter() - start))
+                                           time.perf_counter() - start, c.test_episodes, c.preset, c.models))
         print(f"[main] report: {report}")
         return report
 

@@ -95,6 +95,37 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
 
 
+def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path):
+    """The default mode: model directories in, tables out. A shipped copy of a trained policy gets
+    exactly the metrics its training run measured; a missing model is named, not a crash."""
+    shipped = tmp_path / "models"
+    shutil.copytree(tiny_main / "tiny" / "hub" / "models" / "local", shipped)
+    shutil.rmtree(shipped / "pdpo_original_h1")
+    out = tmp_path / "out"
+    pipeline_main([f"--models={shipped}", f"--output_root={out}", "--run=shipped", "--test_episodes=4",
+                   "--figure_steps=[0,2]", "--figure_samples=4"])
+    root = out / "shipped"
+    assert sorted(p.name for p in root.iterdir()) == ["commands.json", "eval", "figures", "main_config.json", "report.md",
+                                                       "stage_times.json", "tables"]  # nothing trained, nothing pushed
+    report = (root / "report.md").read_text()
+    assert "## Policies" in report and "## Budget" not in report and "### Boundary audit" in report
+    assert "Not shipped yet (no row): `crowdnavpp_bounded`." in report
+    assert "Not shipped yet (no row): `pdpo_original_h1`, `crowdnavpp_original`." in report
+    methods = {"bounded": ["ORCA", "straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"],
+               "original": ["ORCA", "straight", "PDPO (H = 5, fine-tuned)"]}
+    for task, labels in methods.items():
+        rows = list(csv.DictReader(io.StringIO((root / "tables" / f"results_{task}.csv").read_text())))
+        assert [r["method"] for r in rows] == labels
+        for fig in ("storyboard.png", "multimodality.png", "curve_pdpo_" + task + "_h5.png"):
+            assert (root / "figures" / task / fig).stat().st_size > 5_000
+        for trained, copy in (("pdpo_ft_h5_s1000", f"pdpo_{task}_h5"), ("orca", "orca")):
+            a, b = (json.loads((d / "eval" / task / name / "metrics.json").read_text())
+                    for d, name in ((tiny_main / "tiny", trained), (root, copy)))
+            keys = ["sr", "cr", "nt", "pl", "itr", "sd", "oob", "mean_return", "n_episodes"]
+            assert [a[k] for k in keys] == [b[k] for k in keys]
+    assert (root / "tables" / "parameters.csv").read_text().count("\n") == 1 + 3
+
+
 def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path):
     """Killed writing the first fine-tuning's checkpoint (no last yet: the rerun restarts that stage
     with --resume=true); the rerun completes and its tables equal the uninterrupted run's. More

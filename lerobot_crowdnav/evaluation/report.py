@@ -150,8 +150,9 @@ class Stage:
 @dataclass(frozen=True)
 class Evaluated:
     """One evaluation in a table row: its ``eval_dir`` (metrics.json, videos/) and the stages that
-    made it. A built-in policy has no checkpoint; a learned one names its pretraining stage and,
-    fine-tuned (checkpoint ``best``, with ``best.json`` beside it), its fine-tuning stage."""
+    made it. A built-in policy has no checkpoint; one trained by the run names its pretraining
+    stage and, fine-tuned (checkpoint ``best``, with ``best.json`` beside it), its fine-tuning
+    stage; a ``shipped`` model directory's card says how it was made."""
 
     name: str
     eval_dir: Path
@@ -160,6 +161,7 @@ class Evaluated:
     seed: int | None = None
     pretrain: Stage | None = None
     finetune: Stage | None = None
+    shipped: bool = False
 
 
 @dataclass(frozen=True)
@@ -172,40 +174,38 @@ class Method:
 
 @dataclass(frozen=True)
 class TaskResults:
-    """One benchmark's section: its rows and its figures (``figures_dir``: storyboard.png,
-    multimodality.png, finetune_curves.png, drawn by the ``figures`` stage)."""
+    """One benchmark's section: its rows and its figures (``figures_dir``: storyboard.png and
+    multimodality.png, drawn by the ``figures`` stage, None without a PDPO policy; ``curves``:
+    (caption, image) of the learning curves)."""
 
     task: str
     title: str
     short: str  # file names: tables/results_<short>.csv
     methods: list[Method]
     figures_dir: Path
-    figures: Stage
+    figures: Stage | None
+    curves: list[tuple[str, Path]] = field(default_factory=list)
     boundary_audit: bool = False  # the original benchmark (no walls): audit leaving the workspace
+    missing_models: list[str] = field(default_factory=list)  # shipped models not found (rows left out)
 
 
 @dataclass(frozen=True)
 class ReportInputs:
-    """Everything the report shows; every path inside ``root``."""
+    """Everything the report shows; every path inside ``root`` except the shipped ``models``.
+    ``budget`` is the training budget of a run that trains (None: it evaluates ``models``)."""
 
     root: Path
-    budget: Budget
+    budget: Budget | None
     tasks: list[TaskResults]
     stages: list[Stage]  # every stage of this invocation, in order (commands.json)
     wall_time_s: float
+    test_episodes: int
+    preset: str
+    models: Path | None = None
 
 
-def write_report(inputs: ReportInputs) -> Path:
-    """``<root>/report.md``, ``<root>/tables/*.csv`` and ``<root>/commands.json`` from the metrics
-    files of a main-job run; every number with its command, config and seed."""
-    b, root = inputs.budget, inputs.root
-    tables = root / "tables"
-    tables.mkdir(parents=True, exist_ok=True)
-    cmd = lambda stage: " ".join(stage.argv)  # noqa: E731
-    lines = [
-        f"# lerobot-crowdnav main job: `{b.run}`", "",
-        f"Machine: {machine_description()}. Wall time of the last invocation: {inputs.wall_time_s / 60:.1f} min "
-        "(stages already complete were skipped; see *Stages* below).", "",
+def _budget_lines(b: Budget) -> list[str]:
+    return [
         "## Budget", "",
         "| setting | this run | paper |", "|---|---|---|",
         f"| ORCA demonstrations per task (successful episodes) | {b.demos} | 3,000 |",
@@ -217,32 +217,68 @@ def write_report(inputs: ReportInputs) -> Path:
         f"| simulator preset | `{b.preset}` | `paper` |", "",
         "Configuration: `main_config.json`; every stage's exact command: `commands.json` and *Stages* below.", "",
     ]
+
+
+def _models_lines(inputs: ReportInputs) -> list[str]:
+    return [
+        "## Policies", "",
+        f"The trained models in `{inputs.models}` (hub format), evaluated on {inputs.test_episodes} test episodes "
+        f"(seeds {SEED_SPLITS['test'][0]} ...) of the `{inputs.preset}` preset. Each model's card (its README.md) "
+        "gives the recipe, budget, seeds, wall time and the command that retrains it from scratch "
+        "(docs/recipes.md); nothing is trained by this job.", "",
+        "Configuration: `main_config.json`; every stage's exact command: `commands.json` and *Stages* below.", "",
+    ]
+
+
+def _provenance(ev: Evaluated, label: str, cmd) -> list[str]:
+    notes = [f"- {label}, `{ev.name}`: `{cmd(ev.evaluate)}`"]
+    if ev.shipped:
+        notes.append(f"  - shipped model `{ev.checkpoint}`: its README.md names the recipe and the command that made it")
+    elif ev.checkpoint is not None and ev.finetune is None:
+        notes.append(f"  - pretrained by `{cmd(ev.pretrain)}` (checkpoint `last`)")
+    elif ev.checkpoint is not None:
+        best = json.loads((ev.checkpoint.parent / "best.json").read_text())
+        notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
+        notes.append(f"  - fine-tuned by `{cmd(ev.finetune)}`; checkpoint `best` "
+                     f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
+                     + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
+    return notes
+
+
+def write_report(inputs: ReportInputs) -> Path:
+    """``<root>/report.md``, ``<root>/tables/*.csv`` and ``<root>/commands.json`` from the metrics
+    files of a main-job run; every number with its command, config and seed."""
+    b, root = inputs.budget, inputs.root
+    tables = root / "tables"
+    tables.mkdir(parents=True, exist_ok=True)
+    cmd = lambda stage: " ".join(stage.argv)  # noqa: E731
+    run = b.run if b is not None else root.name
+    lines = [
+        f"# lerobot-crowdnav main job: `{run}`", "",
+        f"Machine: {machine_description()}. Wall time of the last invocation: {inputs.wall_time_s / 60:.1f} min "
+        "(stages already complete were skipped; see *Stages* below).", "",
+        *(_budget_lines(b) if b is not None else _models_lines(inputs)),
+    ]
     counts: dict[str, dict[str, int]] = {}
     for t in inputs.tasks:
         rows = []
         notes = []
         for method in t.methods:
-            label = method.label
-            rows.append(Row(label, [load_metrics(ev.eval_dir / "metrics.json") for ev in method.evaluations]))
+            rows.append(Row(method.label, [load_metrics(ev.eval_dir / "metrics.json") for ev in method.evaluations]))
             for ev in method.evaluations:
-                notes.append(f"- {label}, `{ev.name}`: `{cmd(ev.evaluate)}`")
-                if ev.checkpoint is None:
-                    continue
-                if ev.finetune is None:
-                    notes.append(f"  - pretrained by `{cmd(ev.pretrain)}` (checkpoint `last`)")
-                    continue
-                best = json.loads((ev.checkpoint.parent / "best.json").read_text())
-                notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
-                notes.append(f"  - fine-tuned by `{cmd(ev.finetune)}`; checkpoint `best` "
-                             f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
-                             + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
-                counts[f"{t.title}: {label}, seed {ev.seed}"] = parameter_counts(ev.checkpoint / "model.safetensors")
+                notes += _provenance(ev, method.label, cmd)
+                if ev.checkpoint is not None and (ev.finetune is not None or ev.shipped) and _is_pdpo(ev.checkpoint):
+                    counts[f"{t.title}: {method.label}" + (f", seed {ev.seed}" if ev.seed is not None else "")] = \
+                        parameter_counts(ev.checkpoint / "model.safetensors")
+        seeds = len(b.seeds) if b is not None else 1
         (tables / f"results_{t.short}.csv").write_text(csv_table(rows))
         lines += [f"## {t.title}", "",
-                  f"`{t.task}`, {b.test_episodes} test episodes, the same seeds for every method"
-                  + (f"; mean ± std over {len(b.seeds)} training seeds" if len(b.seeds) > 1 else "") + ". "
-                  f"CSV: `tables/results_{t.short}.csv`.", "", markdown_table(rows), "",
-                  "<details><summary>Provenance of each row</summary>", "", *notes, "", "</details>", ""]
+                  f"`{t.task}`, {inputs.test_episodes} test episodes, the same seeds for every method"
+                  + (f"; mean ± std over {seeds} training seeds" if seeds > 1 else "") + ". "
+                  f"CSV: `tables/results_{t.short}.csv`.", "", markdown_table(rows), ""]
+        if t.missing_models:
+            lines += ["Not shipped yet (no row): " + ", ".join(f"`{name}`" for name in t.missing_models) + ".", ""]
+        lines += ["<details><summary>Provenance of each row</summary>", "", *notes, "", "</details>", ""]
         if t.boundary_audit:
             md, csv_text = boundary_audit(rows)
             (tables / "boundary_audit.csv").write_text(csv_text)
@@ -256,17 +292,17 @@ def write_report(inputs: ReportInputs) -> Path:
               "CSV: `tables/parameters.csv`.", "", md, "", "## Figures", ""]
     for t in inputs.tasks:
         fig = t.figures_dir
-        lines += [f"### {t.title}", "",
-                  f"Action-chunk storyboard (`{cmd(t.figures)}`): robot-centred snapshots of one test "
-                  "episode; dashed circle = sensing range, blue = humans and their predicted trajectories, "
-                  "green = robot, the sampled chunk as a path ending in a red cross.", "",
-                  f"![storyboard]({_rel(fig / 'storyboard.png', root)})", "",
-                  "Multimodality: many chunks sampled for the same observation at several steps.", "",
-                  f"![multimodality]({_rel(fig / 'multimodality.png', root)})", "",
-                  "Fine-tuning: training success rate and average episode reward against environment steps "
-                  "(lines: training episodes, smoothed; markers: deterministic validation).", "",
-                  f"![fine-tuning curves]({_rel(fig / 'finetune_curves.png', root)})", "",
-                  "One test episode per method (the first test seed):", ""]
+        lines += [f"### {t.title}", ""]
+        if t.figures is not None:
+            lines += [f"Action-chunk storyboard (`{cmd(t.figures)}`): robot-centred snapshots of one test "
+                      "episode; dashed circle = sensing range, blue = humans and their predicted trajectories, "
+                      "green = robot, the sampled chunk as a path ending in a red cross.", "",
+                      f"![storyboard]({_rel(fig / 'storyboard.png', root)})", "",
+                      "Multimodality: many chunks sampled for the same observation at several steps.", "",
+                      f"![multimodality]({_rel(fig / 'multimodality.png', root)})", ""]
+        for caption, image in t.curves:
+            lines += [caption, "", f"![learning curve]({_rel(image, root)})", ""]
+        lines += ["One test episode per method (the first test seed):", ""]
         for method in t.methods:
             gifs = sorted((method.evaluations[0].eval_dir / "videos").glob("*.gif"))
             if gifs:
@@ -278,9 +314,14 @@ def write_report(inputs: ReportInputs) -> Path:
         lines.append(f"| {stage.name} | `{cmd(stage)}` | {'skipped (complete)' if t is None else f'{t:.0f} s'} |")
     lines += ["", "## Reproduce", "",
               "Rerunning the same `lerobot-crowdnav-main` command skips complete stages; with "
-              "`--rerun_eval=true` it evaluates the saved checkpoints again and regenerates identical "
-              "tables (evaluation is deterministic: fixed test seeds, policy sampling seed 0).", ""]
+              "`--rerun_eval=true` it evaluates the " + ("shipped models" if b is None else "saved checkpoints")
+              + " again and regenerates identical tables (evaluation is deterministic: fixed test seeds, policy "
+              "sampling seed 0).", ""]
     (root / "commands.json").write_text(json.dumps({stage.name: stage.argv for stage in inputs.stages}, indent=2))
     report = root / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def _is_pdpo(checkpoint: Path) -> bool:
+    return json.loads((Path(checkpoint) / "config.json").read_text()).get("type") == "pdpo"
