@@ -90,6 +90,28 @@ def test_padded_rows_do_not_change_the_outputs(policy):
         torch.testing.assert_close(x, y, rtol=0, atol=1e-6)
 
 
+def test_visible_humans_only_gives_what_all_slots_give(policy):
+    """The speed-up that runs the self-attention per group of similar visible counts over the
+    visible prefix only: outputs and gradients as when every one of the N slots is encoded."""
+    counts = [0, 1, 2, 3, 5, 7, 8, 11, 13, 16, 19, 20, 4, 6, 0, 9, 12, 20, 1, 3]
+    obs = random_obs(len(counts), counts, seed=3)
+    net = policy.net
+
+    def every_slot(state):
+        o = split_obs(state, N, L)
+        robot = net.robot_linear(o.robot)
+        humans = net.spatial_linear(net.human_attn(o.humans, o.visible))
+        return (robot, *net.robot_human_attn(robot, humans, o.visible))
+
+    with torch.enable_grad():
+        fast, full = net.encode(obs), every_slot(obs)
+        for x, y in zip(fast, full, strict=True):
+            torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+        grads = [torch.autograd.grad(out[1].square().sum(), list(net.human_attn.parameters())) for out in (fast, full)]
+    for x, y in zip(*grads, strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4)  # float sums in another order
+
+
 def test_a_sequence_scored_at_once_equals_acting_step_by_step(policy):
     T, B = 7, 3
     obs = torch.stack([random_obs(B, [t % 5, 0, 20], seed=t) for t in range(T)])  # (T, B, D)
