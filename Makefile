@@ -14,9 +14,10 @@ $(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/le
 		-e policies/lerobot_policy_crowdnavpp
 	@touch $@
 
-# The main job on embedded defaults (about 15 min on 2 CPU cores): ORCA demonstrations ->
-# lerobot-train -> diffusion PPO -> evaluation -> hub-format pushes -> outputs/main/report.md.
-# Rerunning skips complete stages; MAIN_ARGS passes flags, e.g. MAIN_ARGS=--config_path=configs/main/paper.yaml
+# The main job on embedded defaults (a few minutes on 2 CPU cores): the policies shipped in
+# models/lerobot-crowdnav and the baselines on the 500 test seeds -> outputs/main/report.md.
+# MAIN_ARGS passes flags, e.g. MAIN_ARGS=--config_path=configs/main/retrain.yaml trains them all
+# from scratch (demonstrations -> lerobot-train -> diffusion PPO; rerunning resumes).
 main: $(STAMP)
 	$(VENV)/bin/lerobot-crowdnav-main $(MAIN_ARGS)
 

@@ -136,6 +136,73 @@ def test_frozen_base_runs_the_first_steps_and_trained_nets_the_last():
     assert not any(p.requires_grad for p in policy.base.parameters())
 
 
+def test_ddim_with_eta_one_over_every_step_is_ddpm_and_few_steps_use_spaced_timesteps():
+    """DDIM (Song et al.) with eta = 1 on all K timesteps is the DDPM posterior: same means and
+    stds from the same weights. With 4 of 20 steps it visits timesteps 15, 10, 5, 0 and samples
+    deterministically (eta = 0) outside fine-tuning rollouts."""
+    torch.manual_seed(2)
+    ddpm = PDPOPolicy(small_pdpo_config(use_ema=False, denoised_clip_value=100.0)).eval()
+    ddim = PDPOPolicy(small_pdpo_config(use_ema=False, denoised_clip_value=100.0, ddim_steps=20)).eval()
+    ddim.load_state_dict(ddpm.state_dict())
+    x, z = torch.randn(6, 5, 2), torch.randn(6, ddpm.config.latent_dim)
+    k = torch.tensor([19, 15, 10, 5, 1, 0])
+    for a, b in zip(ddpm.actor.p_mean_std(x, k, z), ddim.actor.p_mean_std(x, k, z), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+    few = PDPOPolicy(small_pdpo_config(use_ema=False, ddim_steps=4)).eval()
+    assert few.actor.timestep.tolist() == [0, 5, 10, 15]
+    seen = []
+    hook = few.actor.denoiser.register_forward_hook(lambda m, args, out: seen.append(args[1][0].item()))
+    state = torch.randn(3, 269)
+    chain = few.sample_chain(state, generator=torch.Generator().manual_seed(0))
+    hook.remove()
+    assert chain.shape == (3, 5, 5, 2) and seen == [15, 10, 5, 0]
+    explore = [few.sample_chain(state, torch.Generator().manual_seed(0), exploration_std=0.1) for _ in range(2)]
+    torch.testing.assert_close(*explore)  # seeded
+    assert not torch.allclose(explore[0][:, -1], chain[:, -1])  # exploring adds noise
+    with pytest.raises(ValueError, match="ddim_steps"):
+        small_pdpo_config(ddim_steps=3)
+
+
+def test_ddim_sampling_is_deterministic_given_the_start_noise():
+    few = PDPOPolicy(small_pdpo_config(use_ema=False, ddim_steps=5)).eval()
+    state = torch.randn(4, 269)
+    a = few.sample_chain(state, generator=torch.Generator().manual_seed(0))
+    b = few.actor.denoise(state, a[:, 0], range(4, -1, -1), 0.0, False, torch.Generator().manual_seed(9))
+    torch.testing.assert_close(a, b)  # a different generator after x_S changes nothing
+
+
+def test_ddim_fine_tuning_scores_its_own_chains(pretrained, tmp_path):
+    """--ppo.ddim_steps=5 --ppo.ft_denoising_steps=5: 5-step chains, log-probabilities of the
+    transitions the rollout sampled, a run whose checkpoint keeps DDIM and evaluates."""
+    cfg = DiffusionPPOConfig(n_steps=4, batch_size=8, update_epochs=1, ddim_steps=5, ft_denoising_steps=5)
+    agent = load_agent(pretrained, cfg, seed=3).eval()
+    assert agent.policy.config.ddim_steps == 5 and agent.policy.base.ddim
+    collector = Collector(CrowdNavVectorEnv(2), agent, None, torch.Generator().manual_seed(0))
+    collector.reset(500_000_000)
+    ro = collector.collect(agent, cfg.n_steps)
+    chain = ro.stored["chain"].flatten(0, 1)
+    assert chain.shape[1] == 6
+    z = agent.policy.actor.encoder(ro.stored["state"].flatten(0, 1))
+    logp = transition_log_prob(agent.policy.actor, z, chain, cfg.min_logprob_denoising_std)
+    assert logp.shape == (chain.shape[0], 5) and torch.isfinite(logp).all()
+    # each sampled transition is at most 3 floored stds from its mean: log-density above the clamp floor
+    assert (logp > -5).all()
+    out = tmp_path / "run"
+    run(pretrained, out, "--env_steps=32", "--ppo.ddim_steps=5", "--ppo.ft_denoising_steps=5")
+    path = out / "checkpoints" / "last" / "pretrained_model"
+    assert PDPOPolicy.from_pretrained(path).config.ddim_steps == 5
+    with pytest.raises(ValueError, match="ddim_steps"):
+        load_agent(path, DiffusionPPOConfig(ft_denoising_steps=5), seed=3)
+    eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", f"--output_dir={tmp_path / 'eval'}"])
+    with pytest.raises(SystemExit, match="fine-tuned with ddim_steps=5"):
+        eval_main([f"--policy.path={path}", "--policy.ddim_steps=0", "--eval.n_episodes=2", f"--output_dir={tmp_path / 'e2'}"])
+    # a BC checkpoint samples with DDIM on request
+    eval_main([f"--policy.path={pretrained}", "--policy.ddim_steps=4", "--eval.n_episodes=2", f"--output_dir={tmp_path / 'e3'}"])
+    with pytest.raises(SystemExit, match="ddim_steps must be 0"):
+        eval_main([f"--policy.path={pretrained}", "--policy.ddim_steps=3", "--eval.n_episodes=2", f"--output_dir={tmp_path / 'e4'}"])
+
+
 # -- the trainer ---------------------------------------------------------------------------------
 class _Recording(torch.nn.Module):
     """The actor-critic as the update sees it, recording each minibatch's log-probabilities."""

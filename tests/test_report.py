@@ -80,6 +80,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         card = (model / "README.md").read_text()
         assert "![diffusion-PPO learning curve](learning_curve.png)" in card and " ".join(["lerobot-crowdnav-main", *argv]) in card
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
+        assert "- Checkpoint: the run's `best`, at " in card
         assert (root / "hub" / "datasets" / "local" / f"crowdnav_orca_{task}" / "meta" / "info.json").exists()
     commands = json.loads((root / "commands.json").read_text())
     assert commands["pretrain bounded H=5 seed=1000"][0] == "lerobot-train"

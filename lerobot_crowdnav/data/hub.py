@@ -169,6 +169,11 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
             "`finetune_config.json` has every setting.",
         ]
+        best = pretrained.parent / "best.json"  # a run's checkpoints/best: why these weights
+        if best.exists():
+            b = json.loads(best.read_text())
+            lines.append(f"- Checkpoint: the run's `best`, at {b['env_steps']:,} env steps (validation success "
+                         f"{100 * b['val/success_rate']:.0f} % on the validation seeds, the paper's choice).")
     lines += evaluation_lines(metrics)
     if curve:
         lines += ["", "## Learning curve", "", f"![diffusion-PPO learning curve]({curve})"]

@@ -8,6 +8,7 @@ the fine-tuning validation (``rl/validation.py``), which all sit above this modu
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -26,7 +27,8 @@ class LearnedPolicy:
     policy (``policy.recurrent``, e.g. crowdnavpp) acts every step and restarts the memory of the
     slots whose episode just began (``predict_action_chunk(..., episode_start=fresh)``)."""
 
-    def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0, use_ema: bool = True):
+    def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0, use_ema: bool = True,
+                 ddim_steps: int | None = None):
         import torch
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -42,6 +44,13 @@ class LearnedPolicy:
         if state is None or tuple(state.shape) != (obs_dim,):
             raise ValueError(f"policy at {path} expects observation.state of shape "
                              f"{None if state is None else tuple(state.shape)}, the env gives ({obs_dim},)")
+        if ddim_steps is not None:
+            if not hasattr(cfg, "ddim_steps"):
+                raise ValueError(f"--policy.ddim_steps is for PDPO; {path} is a {cfg.type!r} policy")
+            if cfg.ft_denoising_steps and ddim_steps != cfg.ddim_steps:
+                raise ValueError(f"--policy.ddim_steps={ddim_steps}: {path} was fine-tuned with ddim_steps={cfg.ddim_steps} "
+                                 "and samples only that way")
+            cfg = dataclasses.replace(cfg, ddim_steps=ddim_steps)  # validated like any config
         self.torch = torch
         self.policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
         if not use_ema and hasattr(cfg, "use_ema"):

@@ -67,6 +67,9 @@ class PretrainedPolicyConfig(RobotPolicyConfig):
     seed: int = 0
     # PDPO only: false samples with the raw trained weights instead of their EMA (an ablation).
     use_ema: bool = True
+    # PDPO only: sample with DDIM over this many steps (0: DDPM over all K) instead of the
+    # checkpoint's own sampler; a fine-tuned policy only runs the sampler it was fine-tuned with.
+    ddim_steps: int | None = None
 
     @property
     def name(self) -> str:
@@ -128,7 +131,8 @@ def evaluate(cfg: EvalConfig) -> dict:
     if isinstance(cfg.policy, PretrainedPolicyConfig):
         if cfg.policy.path is None:
             raise ValueError("--policy.type=pretrained needs --policy.path")
-        actor = LearnedPolicy(cfg.policy.path, cfg.policy.device, sim_cfg.obs_dim, cfg.policy.seed, cfg.policy.use_ema)
+        actor = LearnedPolicy(cfg.policy.path, cfg.policy.device, sim_cfg.obs_dim, cfg.policy.seed, cfg.policy.use_ema,
+                              cfg.policy.ddim_steps)
     start = time.perf_counter()
     records = run_episodes(env, actor, cfg.eval.split, cfg.eval.n_episodes, label=policy)
     elapsed = time.perf_counter() - start

@@ -85,9 +85,13 @@ class DiffusionPPOConfig(PPOConfig):
     """Diffusion PPO (DPPO): a decision is a sampled chunk, scored as its K' fine-tuned
     denoising transitions, each with its own clip and advantage discount."""
 
-    # Denoising steps fine-tuned (K'): the last K' of the K-step chain; a frozen copy of the
-    # pretrained nets runs the first K - K'.
+    # Denoising steps fine-tuned (K'): the last K' of the chain; a frozen copy of the pretrained
+    # nets runs the ones before.
     ft_denoising_steps: int = 10
+    # Sample and fine-tune with DDIM over this many steps (0: DDPM over the policy's K; DPPO's
+    # ddim_steps): e.g. --ppo.ddim_steps=5 --ppo.ft_denoising_steps=5 runs 5 denoiser calls per
+    # action instead of 20 and scores 5 transitions instead of 10. Rollouts explore with eta = 1.
+    ddim_steps: int = 0
     # Advantage of denoising step i is multiplied by gamma_denoising ** (K'-1-i).
     gamma_denoising: float = 0.99
     # Per-denoising-step PPO clip: clip_ploss_coef_base at the noisiest fine-tuned step up to
@@ -107,6 +111,9 @@ class DiffusionPPOConfig(PPOConfig):
         super().validate()
         if self.ft_denoising_steps < 1:
             raise ValueError(f"--ppo.ft_denoising_steps must be >= 1, got {self.ft_denoising_steps}")
+        if self.ddim_steps < 0 or 0 < self.ddim_steps < self.ft_denoising_steps:
+            raise ValueError(f"--ppo.ddim_steps must be 0 (DDPM) or >= --ppo.ft_denoising_steps={self.ft_denoising_steps}, "
+                             f"got {self.ddim_steps}")
         for name in ("min_sampling_denoising_std", "min_logprob_denoising_std"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--ppo.{name} must be > 0, got {getattr(self, name)}")

@@ -134,10 +134,14 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
     path = Path(path)
     pcfg = read_policy_config(path, "pdpo", "diffusion PPO fine-tunes PDPO ('pdpo')")
     ft = cfg.ft_denoising_steps
-    if pcfg.ft_denoising_steps and pcfg.ft_denoising_steps != ft:
-        raise ValueError(f"{path} was fine-tuned with ft_denoising_steps={pcfg.ft_denoising_steps}, not {ft}")
-    if ft > pcfg.num_diffusion_steps:
-        raise ValueError(f"--ppo.ft_denoising_steps={ft} exceeds the policy's {pcfg.num_diffusion_steps} steps")
+    if pcfg.ft_denoising_steps and (pcfg.ft_denoising_steps, pcfg.ddim_steps) != (ft, cfg.ddim_steps):
+        raise ValueError(f"{path} was fine-tuned with ft_denoising_steps={pcfg.ft_denoising_steps}, ddim_steps="
+                         f"{pcfg.ddim_steps}, not {ft}, {cfg.ddim_steps}")
+    if cfg.ddim_steps and pcfg.num_diffusion_steps % cfg.ddim_steps:
+        raise ValueError(f"--ppo.ddim_steps={cfg.ddim_steps} must divide the policy's {pcfg.num_diffusion_steps} steps")
+    if ft > (cfg.ddim_steps or pcfg.num_diffusion_steps):
+        raise ValueError(f"--ppo.ft_denoising_steps={ft} exceeds the {cfg.ddim_steps or pcfg.num_diffusion_steps} "
+                         "sampling steps")
     loaded = PDPOPolicy.from_pretrained(path, config=pcfg)
     if pcfg.ft_denoising_steps:
         policy = loaded
@@ -145,7 +149,7 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
         critic.load_state_dict(_saved_critic(path))
     else:
         ft_cfg = copy.deepcopy(pcfg)
-        ft_cfg.use_ema, ft_cfg.ft_denoising_steps = False, ft
+        ft_cfg.use_ema, ft_cfg.ft_denoising_steps, ft_cfg.ddim_steps = False, ft, cfg.ddim_steps
         policy = PDPOPolicy(ft_cfg)
         weights = loaded.sampling_actor().state_dict()
         policy.actor.load_state_dict(weights)

@@ -57,6 +57,12 @@ class PDPOConfig(PreTrainedConfig):
     time_embed_dim: int = 16
     # Denoising steps K (paper: 20), cosine beta schedule, epsilon prediction, DDPM sampling.
     num_diffusion_steps: int = 20
+    # Sampling: 0 = DDPM over all K steps (the paper); n > 0 = DDIM over n evenly spaced steps
+    # of the same network (K divisible by n; DPPO's ddim_steps): K/n times fewer denoiser calls
+    # per action. DDIM sampling is deterministic (eta = 0) except in fine-tuning rollouts, which
+    # explore with eta = 1. Set it on a BC checkpoint (--policy.ddim_steps=5) or fine-tune with it
+    # (--ppo.ddim_steps=5 --ppo.ft_denoising_steps=5).
+    ddim_steps: int = 0
     # Clamp of the x_0 prediction while sampling (actions live in [-1, 1]).
     denoised_clip_value: float = 1.0
     # Lower bound of the sampling std of select_action / predict_action_chunk (0: the DDPM
@@ -65,7 +71,7 @@ class PDPOConfig(PreTrainedConfig):
     min_sampling_denoising_std: float = 0.0
     # Denoising steps fine-tuned by diffusion PPO (DPPO's K'; 0 = a BC policy). When > 0 the
     # policy holds a frozen copy of the pretrained encoder and denoiser (``base``) that runs the
-    # first K - K' steps of the chain; the trained ones run the last K'.
+    # first steps of the chain; the trained ones run the last K' (of K, or of ddim_steps).
     ft_denoising_steps: int = 0
 
     # -- critic size, read by diffusion PPO (lerobot_crowdnav.rl.dppo) ------------------------------
@@ -100,10 +106,19 @@ class PDPOConfig(PreTrainedConfig):
             raise ValueError(f"noise_draws must be >= 1, got {self.noise_draws}")
         if self.num_diffusion_steps < 1:
             raise ValueError("num_diffusion_steps must be >= 1")
-        if not 0 <= self.ft_denoising_steps <= self.num_diffusion_steps:
-            raise ValueError(f"ft_denoising_steps must be in [0, num_diffusion_steps={self.num_diffusion_steps}]")
+        if self.ddim_steps < 0 or (self.ddim_steps and self.num_diffusion_steps % self.ddim_steps):
+            raise ValueError(f"ddim_steps must be 0 (DDPM) or divide num_diffusion_steps={self.num_diffusion_steps}, "
+                             f"got {self.ddim_steps}")
+        if not 0 <= self.ft_denoising_steps <= self.sampling_steps:
+            raise ValueError(f"ft_denoising_steps must be in [0, {self.sampling_steps}] (the sampling steps), "
+                             f"got {self.ft_denoising_steps}")
         if not 0 < self.ema_decay < 1:
             raise ValueError("ema_decay must be in (0, 1)")
+
+    @property
+    def sampling_steps(self) -> int:
+        """Reverse steps of one sample: ddim_steps, or K for DDPM."""
+        return self.ddim_steps or self.num_diffusion_steps
 
     @property
     def state_dim(self) -> int:

@@ -114,26 +114,36 @@ def cosine_beta_schedule(steps: int, s: float = 0.008) -> np.ndarray:
 
 
 class DiffusionActor(nn.Module):
-    """The model: crowd encoder, denoiser and the DDPM reverse process over an action chunk
-    (DPPO's ``model/``: it knows how to encode, sample and give the per-step Gaussian of a chain)."""
+    """The model: crowd encoder, denoiser and the reverse process over an action chunk (DPPO's
+    ``model/``: it knows how to encode, sample and give the per-step Gaussian of a chain).
+
+    Reverse steps are indexed k = S-1 (noisiest) .. 0 over the sampler's S steps: DDPM runs all
+    K (k is the timestep), DDIM runs S = ``ddim_steps`` of them at timesteps k * K/S."""
 
     def __init__(self, cfg: PDPOConfig):
         super().__init__()
         self.horizon, self.clip_value = cfg.horizon, cfg.denoised_clip_value
+        self.ddim = cfg.ddim_steps > 0
         self.encoder = CrowdEncoder(cfg)
         self.denoiser = Denoiser(cfg)
         betas = torch.tensor(cosine_beta_schedule(cfg.num_diffusion_steps), dtype=torch.float32)
         alphas_cumprod = torch.cumprod(1 - betas, dim=0)
-        prev = torch.cat([torch.ones(1), alphas_cumprod[:-1]])
-        posterior_var = betas * (1 - prev) / (1 - alphas_cumprod)
-        for name, value in {
-            "alphas_cumprod": alphas_cumprod,
-            "sqrt_recip_alphas_cumprod": (1 / alphas_cumprod).sqrt(),
-            "sqrt_recipm1_alphas_cumprod": (1 / alphas_cumprod - 1).sqrt(),
-            "posterior_std": posterior_var.clamp(min=1e-20).sqrt(),
-            "posterior_mean_coef1": betas * prev.sqrt() / (1 - alphas_cumprod),
-            "posterior_mean_coef2": (1 - prev) * (1 - betas).sqrt() / (1 - alphas_cumprod),
-        }.items():
+        self.register_buffer("alphas_cumprod", alphas_cumprod, persistent=False)  # training: all K
+        t = torch.arange(cfg.sampling_steps) * (cfg.num_diffusion_steps // cfg.sampling_steps)
+        abar = alphas_cumprod[t]
+        prev = torch.cat([torch.ones(1), abar[:-1]])  # abar of the next reverse step's timestep
+        buffers = {"timestep": t, "sqrt_recip_abar": (1 / abar).sqrt(), "sqrt_recipm1_abar": (1 / abar - 1).sqrt()}
+        if self.ddim:  # DDIM (Song et al.), eta = 1 while exploring, 0 otherwise
+            sigma = ((1 - prev) / (1 - abar) * (1 - abar / prev)).sqrt()
+            buffers |= {"sqrt_abar": abar.sqrt(), "sqrt_one_minus_abar": (1 - abar).sqrt(), "sqrt_prev": prev.sqrt(),
+                        "ddim_sigma": sigma, "dir_coef": (1 - prev - sigma ** 2).clamp(min=0).sqrt(),
+                        "dir_coef_deterministic": (1 - prev).sqrt()}
+        else:  # the DDPM posterior q(x_{k-1} | x_k, x_0)
+            betas = betas[t]
+            buffers |= {"posterior_std": (betas * (1 - prev) / (1 - abar)).clamp(min=1e-20).sqrt(),
+                        "posterior_mean_coef1": betas * prev.sqrt() / (1 - abar),
+                        "posterior_mean_coef2": (1 - prev) * (1 - betas).sqrt() / (1 - abar)}
+        for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
 
     def denoising_loss(self, state: Tensor, x0: Tensor, valid: Tensor, noise_draws: int = 1) -> Tensor:
@@ -153,26 +163,38 @@ class DiffusionActor(nn.Module):
         weights = valid[..., None].expand_as(err).float()
         return (err * weights).sum() / weights.sum().clamp(min=1)
 
-    def p_mean_std(self, x: Tensor, k: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean and std ``(B, 1, 1)`` of p(x_{k-1} | x_k) for per-sample steps ``k (B,)``: the DDPM
-        posterior around the x_0 estimate, clamped to [-denoised_clip_value, +denoised_clip_value]."""
-        eps = self.denoiser(x, k, z)
+    def p_mean_std(self, x: Tensor, k: Tensor, z: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor]:
+        """Mean and std ``(B, 1, 1)`` of p(x_{k-1} | x_k) for per-sample reverse steps ``k (B,)``
+        around the x_0 estimate clamped to [-denoised_clip_value, +denoised_clip_value]: the DDPM
+        posterior, or DDIM with eta = 1 (``deterministic``: eta = 0, std 0), whose direction term
+        uses the noise implied by the clamped x_0 (DPPO)."""
+        eps = self.denoiser(x, self.timestep[k], z)
         at = lambda buf: buf[k][:, None, None]  # noqa: E731
-        x0 = at(self.sqrt_recip_alphas_cumprod) * x - at(self.sqrt_recipm1_alphas_cumprod) * eps
+        x0 = at(self.sqrt_recip_abar) * x - at(self.sqrt_recipm1_abar) * eps
         x0 = x0.clamp(-self.clip_value, self.clip_value)
-        mean = at(self.posterior_mean_coef1) * x0 + at(self.posterior_mean_coef2) * x
-        return mean, at(self.posterior_std)
+        if not self.ddim:
+            return at(self.posterior_mean_coef1) * x0 + at(self.posterior_mean_coef2) * x, at(self.posterior_std)
+        eps = (x - at(self.sqrt_abar) * x0) / at(self.sqrt_one_minus_abar)
+        if deterministic:
+            return at(self.sqrt_prev) * x0 + at(self.dir_coef_deterministic) * eps, torch.zeros_like(at(self.ddim_sigma))
+        return at(self.sqrt_prev) * x0 + at(self.dir_coef) * eps, at(self.ddim_sigma)
 
     def denoise(self, state: Tensor, x: Tensor, steps: range, std_floor: float, final_noise: bool,
                 generator: torch.Generator | None = None, latent: Tensor | None = None) -> Tensor:
         """Run the reverse steps ``k in steps`` (descending) from ``x (B, H, 2)``; returns the chain
-        ``(B, len(steps)+1, H, 2)``, ``x`` first. Each step adds the posterior std floored at
-        ``std_floor`` times noise clipped to +-3 (DPPO); the k = 0 step is the mean unless
-        ``final_noise``. ``latent``: the state's encoding when the caller already has it."""
+        ``(B, len(steps)+1, H, 2)``, ``x`` first. ``final_noise`` (fine-tuning rollouts): every
+        step adds its std floored at ``std_floor`` times noise clipped to +-3 (DPPO). Otherwise
+        DDPM adds it at every step but k = 0 and DDIM samples deterministically (eta = 0).
+        ``latent``: the state's encoding when the caller already has it."""
         z = self.encoder(state) if latent is None else latent
         chain = [x]
         for k in steps:
-            mean, std = self.p_mean_std(x, torch.full((x.shape[0],), k, device=x.device, dtype=torch.long), z)
+            kk = torch.full((x.shape[0],), k, device=x.device, dtype=torch.long)
+            if self.ddim and not final_noise:
+                x = self.p_mean_std(x, kk, z, deterministic=True)[0]
+                chain.append(x)
+                continue
+            mean, std = self.p_mean_std(x, kk, z)
             if k == 0 and not final_noise:
                 x = mean
             else:
@@ -270,9 +292,10 @@ class PDPOPolicy(PreTrainedPolicy):
 
     def sample_chain(self, state: Tensor, generator: torch.Generator | None = None,
                      exploration_std: float | None = None, latent: Tensor | None = None) -> Tensor:
-        """DDPM ancestral sampling from x_K ~ N(0, I); returns the trained part of the chain,
-        ``(B, K'+1, H, 2)`` = x_{K'} .. x_0 (K' = K for a BC policy; x_0 before the final clamp).
-        A fine-tuned policy runs steps k >= K' with the frozen ``base``.
+        """Reverse process (DDPM, or DDIM with ``ddim_steps``) from pure noise; returns the
+        trained part of the chain, ``(B, K'+1, H, 2)`` = x_{K'} .. x_0 (K' = all sampling steps for
+        a BC policy; x_0 before the final clamp). A fine-tuned policy runs steps k >= K' with the
+        frozen ``base``.
 
         ``exploration_std=None``: std floored at ``min_sampling_denoising_std``, no noise at the
         last step (BC sampling, DPPO's deterministic evaluation). A float: std floored at it and
@@ -282,9 +305,9 @@ class PDPOPolicy(PreTrainedPolicy):
         floor = cfg.min_sampling_denoising_std if exploration_std is None else exploration_std
         explore = exploration_std is not None
         x = torch.randn((state.shape[0], cfg.horizon, 2), device=state.device, generator=generator)
-        trained = cfg.ft_denoising_steps or cfg.num_diffusion_steps
-        if trained < cfg.num_diffusion_steps:
-            frozen_steps = range(cfg.num_diffusion_steps - 1, trained - 1, -1)
+        trained = cfg.ft_denoising_steps or cfg.sampling_steps
+        if trained < cfg.sampling_steps:
+            frozen_steps = range(cfg.sampling_steps - 1, trained - 1, -1)
             x = self.base.denoise(state, x, frozen_steps, floor, explore, generator, latent)[:, -1]
         return self.sampling_actor().denoise(state, x, range(trained - 1, -1, -1), floor, explore, generator, latent)
 
