@@ -276,7 +276,8 @@ class Pipeline:
 
     def methods(self, task: str) -> list[tuple[str, list[Evaluation]]]:
         """The table rows: (label, the evaluations averaged in it, one per training seed)."""
-        rows = [("ORCA", [Evaluation("orca")]), ("straight", [Evaluation("straight")])]
+        robot = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().orca_robot.replace("_", "-")
+        rows = [(f"ORCA ({robot})", [Evaluation("orca")]), ("straight", [Evaluation("straight")])]
         if self.cfg.models is not None:
             return rows + [(label, [ev]) for label, ev in self.shipped(task)]
         h0 = self.main_horizon

@@ -63,7 +63,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     for section in ("## Budget", "## Bounded CrowdNav", "## original CrowdNav", "### Boundary audit",
                     "## Parameter counts", "## Figures", "## Stages", "## Reproduce"):
         assert section in report, section
-    methods = ["ORCA", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
+    methods = ["ORCA (look-ahead)", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
                "PDPO (H = 5, fine-tuned)"]
     for name in ("results_bounded.csv", "results_original.csv", "boundary_audit.csv"):
         rows = list(csv.DictReader(io.StringIO((root / "tables" / name).read_text())))
@@ -112,8 +112,8 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
     assert "## Policies" in report and "## Budget" not in report and "### Boundary audit" in report
     assert "Not shipped yet (no row): `crowdnavpp_bounded`." in report
     assert "Not shipped yet (no row): `pdpo_original_h1`, `crowdnavpp_original`." in report
-    methods = {"bounded": ["ORCA", "straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"],
-               "original": ["ORCA", "straight", "PDPO (H = 5, fine-tuned)"]}
+    methods = {"bounded": ["ORCA (look-ahead)", "straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"],
+               "original": ["ORCA (look-ahead)", "straight", "PDPO (H = 5, fine-tuned)"]}
     for task, labels in methods.items():
         rows = list(csv.DictReader(io.StringIO((root / "tables" / f"results_{task}.csv").read_text())))
         assert [r["method"] for r in rows] == labels

@@ -141,7 +141,7 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
         "## Architecture", "",
         f"- Input: `observation.state`, the 269-float crowd observation ({config.get('num_humans')} humans, "
         f"{config.get('prediction_steps')} prediction steps); output: a chunk of H = {config.get('horizon')} "
-        f"world-frame velocities (m/s), of which the first {config.get('n_action_steps')} are executed (receding horizon).",
+        f"world-frame velocities (m/s); the first {config.get('n_action_steps')} executed, then a new chunk (receding horizon).",
         f"- Crowd encoder: human MLP {config.get('human_mlp_dims')}, {config.get('attention_heads')}-head masked "
         f"self-attention with residual, layer norm, dropout {config.get('dropout')}; edge MLP {config.get('edge_mlp_dims')}; "
         f"attention pooling over visible humans; latent MLP {config.get('latent_mlp_dims')}.",
