@@ -1,0 +1,31 @@
+"""The trained models shipped in models/lerobot-crowdnav: hub-format directories with their card
+and learning curve that lerobot loads and lerobot-crowdnav-eval runs (make main evaluates them on
+the 500 test seeds; tests/test_report.py checks that a shipped copy reproduces its run's metrics)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lerobot_crowdnav.evaluation.eval import main as eval_main
+from lerobot_crowdnav.pipeline import SHIPPED_MODELS
+
+MODELS = sorted(p for p in SHIPPED_MODELS.iterdir() if p.is_dir()) if SHIPPED_MODELS.exists() else []
+
+
+def test_the_two_pdpo_policies_are_shipped():
+    assert {"pdpo_bounded_h5", "pdpo_original_h5"} <= {p.name for p in MODELS}
+
+
+@pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
+def test_shipped_model_has_its_card_and_evaluates(path, tmp_path):
+    card = (path / "README.md").read_text()
+    for section in ("## Evaluation", "500 test episodes", "## Learning curve", "## Reproduce", "| total |"):
+        assert section in card, section
+    assert (path / "learning_curve.png").stat().st_size > 10_000
+    task = json.loads((path / "finetune_config.json").read_text())["env"]["task"]
+    eval_main([f"--policy.path={path}", f"--env.task={task}", "--eval.n_episodes=4", "--eval.split=test",
+               f"--output_dir={tmp_path}"])
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["n_episodes"] == 4 and metrics["policy"] == path.name
