@@ -302,6 +302,9 @@ class Pipeline:
             if (path / "model.safetensors").exists():
                 config = json.loads((path / "config.json").read_text())
                 horizon = config["horizon"] if config.get("type") == "pdpo" else None
+                if horizon is not None and not name.endswith(f"_h{horizon}"):
+                    raise ValueError(f"{path} holds a PDPO policy with H = {horizon}: its row ({label}) needs H = "
+                                     f"{name.rsplit('_h', 1)[-1]}")
                 found.append((label, Evaluation(name, path, horizon, shipped=True)))
         return found
 
@@ -326,7 +329,8 @@ class Pipeline:
         argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), f"--eval.n_episodes={self.cfg.test_episodes}",
                 "--eval.split=test", f"--eval.batch_size={min(256, self.cfg.test_episodes)}", "--eval.n_videos=1",
                 f"--output_dir={out}", "--overwrite=true"]
-        done = (not self.cfg.rerun_eval and metrics.exists()
+        # A shipped model may have been replaced since its last evaluation (under a minute): always run.
+        done = (not self.cfg.rerun_eval and not ev.shipped and metrics.exists()
                 and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
         return self._stage(f"eval {SHORT[task]} {ev.name}", argv, done, lambda: eval_main(argv[1:]))
 
@@ -406,7 +410,8 @@ class Pipeline:
                     json.loads(line) for line in progress.read_text().splitlines()]
             plot_finetune_curves(runs, curves[0][1])
 
-        done = all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval
+        done = (all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval
+                and self.cfg.models is None)  # shipped models may have been replaced: redraw (seconds)
         return self._stage(f"figures {SHORT[task]}", argv, done, run), curves
 
     def figures_dir(self, task: str) -> Path:

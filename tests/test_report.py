@@ -125,6 +125,22 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
             keys = ["sr", "cr", "nt", "pl", "itr", "sd", "oob", "mean_return", "n_episodes"]
             assert [a[k] for k in keys] == [b[k] for k in keys]
     assert (root / "tables" / "parameters.csv").read_text().count("\n") == 1 + 3
+    # A model replaced in place is evaluated again on a rerun (no stale row), and one in the wrong
+    # slot is refused: here Bounded H = 5 becomes the original-benchmark policy.
+    before = (root / "tables" / "results_bounded.csv").read_text()
+    shutil.rmtree(shipped / "pdpo_bounded_h5")
+    shutil.copytree(shipped / "pdpo_original_h5", shipped / "pdpo_bounded_h5")
+    argv = [f"--models={shipped}", f"--output_root={out}", "--run=shipped", "--test_episodes=4", "--figure_steps=[0,2]",
+            "--figure_samples=4", "--tasks=[BoundedCrowdNav-v0]"]
+    pipeline_main(argv)
+    after = {r["method"]: r for r in csv.DictReader(io.StringIO((root / "tables" / "results_bounded.csv").read_text()))}
+    old = {r["method"]: r for r in csv.DictReader(io.StringIO(before))}
+    assert after["PDPO (H = 5, fine-tuned)"] != old["PDPO (H = 5, fine-tuned)"]
+    assert after["ORCA (look-ahead)"] == old["ORCA (look-ahead)"]
+    shutil.rmtree(shipped / "pdpo_bounded_h1")
+    shutil.copytree(shipped / "pdpo_original_h5", shipped / "pdpo_bounded_h1")
+    with pytest.raises(SystemExit, match="H = 5: its row"):
+        pipeline_main(argv)
 
 
 def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path):
