@@ -29,6 +29,7 @@ A larger budget on a rerun extends the incomplete stages (lerobot-train resumes 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import shutil
@@ -294,8 +295,10 @@ class Pipeline:
         return {FINETUNED_LABEL[1]: f"pdpo_{short}_h1", FINETUNED_LABEL[5]: f"pdpo_{short}_h5",
                 CROWDNAVPP_LABEL: f"crowdnavpp_{short}"}
 
+    @functools.cache
     def shipped(self, task: str) -> list[tuple[str, Evaluation]]:
-        """The shipped models of ``task`` that exist in ``--models``, as table rows."""
+        """The shipped models of ``task`` that exist in ``--models``, as table rows (read once
+        per run: the rows, the figures and the curves all ask)."""
         found = []
         for label, name in self.shipped_names(task).items():
             path = self.cfg.models / name

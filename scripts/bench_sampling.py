@@ -23,6 +23,7 @@ from pathlib import Path
 
 def latency_ms(path: str, ddim_steps: int, task: str, calls: int, threads: int) -> float:
     import gymnasium as gym
+    import numpy as np
     import torch
 
     import lerobot_crowdnav  # noqa: F401  (registers the envs)
@@ -36,7 +37,7 @@ def latency_ms(path: str, ddim_steps: int, task: str, calls: int, threads: int) 
     fresh = True
     for i in range(calls + 10):
         start = time.perf_counter()
-        action = actor(obs[None], torch.tensor([fresh]).numpy())[0]
+        action = actor(obs[None], np.array([fresh]))[0]
         if i >= 10:
             times.append(time.perf_counter() - start)
         obs, _, terminated, truncated, _ = env.step(action)
