@@ -126,8 +126,8 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
     cfg.validate(world)
     sim_cfg = cfg.env.resolve()
     out = Path(cfg.output_dir or f"outputs/{command}/{sim_cfg.task}_{sim_cfg.preset}")
-    if acc.device.type == "cpu":
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    if acc.device.type == "cpu":  # the cores this process may use (taskset / cgroup), shared by ranks
+        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // world))
     settings = json.loads(json.dumps(draccus.encode(cfg), default=str))
     ckpts = Checkpoints(out / "checkpoints", acc, max(9, len(str(cfg.env_steps))))
     # --resume=true before the first checkpoint (killed early): start over.
