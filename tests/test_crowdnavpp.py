@@ -112,6 +112,31 @@ def test_visible_humans_only_gives_what_all_slots_give(policy):
         torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4)  # float sums in another order
 
 
+@pytest.mark.parametrize("batch", [5, 60])  # 100 human rows: the two maps in turn; 1,200: composed
+def test_human_self_attention_is_the_reference_two_stage_attention(policy, batch):
+    """The human self-attention (q/k/v linears, then the MultiheadAttention's in-projection,
+    composed into one map for large batches): outputs and parameter gradients as the reference's
+    nn.MultiheadAttention call on q/k/v linears, with key padding for the invisible humans."""
+    attn = policy.net.human_attn
+    counts = ([1, 4, 9, 20, 2] * 12)[:batch]
+    o = split_obs(random_obs(len(counts), counts, seed=5), N, L)
+
+    def reference(humans, visible):
+        e = attn.embedding(humans)
+        return attn.attention(attn.q_linear(e), attn.k_linear(e), attn.v_linear(e), key_padding_mask=~visible,
+                              need_weights=False)[0]
+
+    with torch.enable_grad():
+        rows = o.humans[..., 0].numel()
+        assert (attn.composed_qkv(rows) is None) == (batch == 5)
+        outs = [attn(o.humans, o.visible, attn.composed_qkv(rows)), reference(o.humans, o.visible)]
+        torch.testing.assert_close(outs[0], outs[1], rtol=1e-4, atol=1e-5)
+        weights = torch.randn_like(outs[0])
+        grads = [torch.autograd.grad((out * weights).sum(), list(attn.parameters())) for out in outs]
+    for x, y in zip(*grads, strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4)
+
+
 def test_a_sequence_scored_at_once_equals_acting_step_by_step(policy):
     T, B = 7, 3
     obs = torch.stack([random_obs(B, [t % 5, 0, 20], seed=t) for t in range(T)])  # (T, B, D)
