@@ -5,8 +5,9 @@
 
 For each task (Bounded and original CrowdNav): collect ORCA demonstrations -> pretrain PDPO with
 the stock ``lerobot-train`` (H = 5, and H = 1 for the "w/o action chunk" ablation) -> fine-tune
-each with diffusion PPO -> evaluate ORCA, straight and the PDPO policies on the same test seeds
--> push the datasets and the fine-tuned policies to a hub-format directory -> figures; then
+each with diffusion PPO (and, with ``--crowdnavpp_env_steps``, train the CrowdNav++ baseline by
+PPO) -> evaluate ORCA, straight and the trained policies on the same test seeds -> push the
+datasets and the trained policies to a hub-format directory -> figures; then
 ``outputs/<run>/report.md`` with the tables (also as CSV), figures and, next to every number,
 the command, config and seed that produced it.
 
@@ -21,6 +22,7 @@ A larger budget on a rerun extends the incomplete stages (lerobot-train resumes 
         datasets/<task>/               ORCA demonstrations (LeRobotDataset)
         train/<task>_h<H>_s<seed>/     lerobot-train runs (checkpoints/last/pretrained_model)
         finetune/<task>_h<H>_s<seed>/  diffusion-PPO runs (checkpoints/best/pretrained_model)
+        crowdnavpp/<task>_s<seed>/     CrowdNav++ PPO runs (checkpoints/best/pretrained_model)
         eval/<task>/<method>/          metrics.json (+ a GIF of the first test episode)
         hub/                           datasets/<org>/<name>, models/<org>/<name>
         figures/<task>/                storyboard, multimodality, fine-tuning curves
@@ -79,7 +81,8 @@ class MainConfig:
     bc_batch_size: int = 128
     # lerobot-train data-loader workers: with the plugin's fast loader, 0 is fastest on 2 cores.
     bc_num_workers: int = 0
-    # Chunk horizons: 5 = PDPO, 1 = the "w/o action chunk" ablation.
+    # Chunk horizons: 5 = PDPO, 1 = the "w/o action chunk" ablation ([] with a CrowdNav++ budget:
+    # no PDPO, no demonstrations).
     horizons: list[int] = field(default_factory=lambda: [5, 1])
     # Diffusion-PPO budget per policy in env steps (paper: about 12 M), envs per process, rollout
     # length, validation episodes and interval (env steps).
@@ -94,6 +97,11 @@ class MainConfig:
     # lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]): a recipe's own settings.
     bc_args: list[str] = field(default_factory=list)
     ft_args: list[str] = field(default_factory=list)
+    # The CrowdNav++ (Const. Vel.) baseline: PPO env steps per task of CrowdNav++'s network trained
+    # from scratch by lerobot-crowdnav-train-ppo with the reference's PPO settings (reference: 10 M;
+    # docs/crowdnavpp.md); 0 = no CrowdNav++ row. Further flags of that run (e.g. "--val.freq=...").
+    crowdnavpp_env_steps: int = 0
+    crowdnavpp_args: list[str] = field(default_factory=list)
     # Training seeds (pretraining and fine-tuning); tables show mean +- std over them.
     seeds: list[int] = field(default_factory=lambda: [1000])
     # Test episodes per method, the first seeds of the test split (paper: 500).
@@ -113,8 +121,12 @@ class MainConfig:
         bad = [t for t in self.tasks if t not in TASKS]
         if bad or not self.tasks:
             raise ValueError(f"--tasks must be a non-empty subset of {list(TASKS)}, got {self.tasks}")
-        if not self.horizons or any(h < 1 for h in self.horizons):
+        if any(h < 1 for h in self.horizons):
             raise ValueError(f"--horizons must be positive, got {self.horizons}")
+        if self.crowdnavpp_env_steps < 0:
+            raise ValueError(f"--crowdnavpp_env_steps must be >= 0, got {self.crowdnavpp_env_steps}")
+        if self.models is None and not self.horizons and not self.crowdnavpp_env_steps:
+            raise ValueError("nothing to train: give --horizons (PDPO) and/or --crowdnavpp_env_steps (CrowdNav++)")
         if not self.seeds:
             raise ValueError("--seeds needs at least one seed")
         for name in ("demos", "bc_steps", "bc_batch_size", "ft_env_steps", "ft_num_envs", "ft_n_steps", "ft_batch_size",
@@ -203,6 +215,9 @@ class Pipeline:
     def finetune_dir(self, task: str, h: int, seed: int) -> Path:
         return self.root / "finetune" / f"{SHORT[task]}_h{h}_s{seed}"
 
+    def crowdnavpp_dir(self, task: str, seed: int) -> Path:
+        return self.root / "crowdnavpp" / f"{SHORT[task]}_s{seed}"
+
     # -- stages --------------------------------------------------------------------------------
     def collect(self, task: str) -> Stage:
         from .data.collect import main as collect_main
@@ -266,10 +281,31 @@ class Pipeline:
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         return self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
 
+    def train_crowdnavpp(self, task: str, seed: int) -> Stage:
+        """CrowdNav++ from scratch by PPO (the reference's settings are the CLI's defaults)."""
+        from .rl.train_ppo import CONFIG_NAME, main as train_ppo_main
+
+        out = self.crowdnavpp_dir(task, seed)
+        saved = out / "checkpoints" / "last" / "pretrained_model" / CONFIG_NAME
+        c = self.cfg
+        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= c.crowdnavpp_env_steps
+        argv = ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp", *self._env_flags(task),
+                "--env.compute_intrusion=false", f"--env_steps={c.crowdnavpp_env_steps}", f"--seed={seed}",
+                f"--output_dir={out}", *c.crowdnavpp_args]
+        if self.device:
+            argv.append(f"--device={self.device}")
+        resume = ["--resume=true"] if out.exists() else []
+        return self._stage(f"train crowdnavpp {SHORT[task]} seed={seed}", argv, done,
+                           lambda: train_ppo_main(argv[1:] + resume))
+
+    def crowdnavpp(self, task: str, seed: int) -> Evaluation:
+        return Evaluation(f"crowdnavpp_s{seed}", self.crowdnavpp_dir(task, seed) / "checkpoints" / "best" / "pretrained_model",
+                          seed=seed, finetuned=True)
+
     @property
-    def main_horizon(self) -> int:
+    def main_horizon(self) -> int | None:
         """The horizon of the "pretrained only" row and of the figures (PDPO's 5 when run)."""
-        return 5 if 5 in self.cfg.horizons else self.cfg.horizons[0]
+        return 5 if 5 in self.cfg.horizons else next(iter(self.cfg.horizons), None)
 
     def finetuned(self, task: str, h: int, seed: int) -> Evaluation:
         return Evaluation(f"pdpo_ft_h{h}_s{seed}", self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model",
@@ -282,11 +318,14 @@ class Pipeline:
         if self.cfg.models is not None:
             return rows + [(label, [ev]) for label, ev in self.shipped(task)]
         h0 = self.main_horizon
-        rows.append((f"PDPO pretrained only (H = {h0}, BC)",
-                     [Evaluation(f"pdpo_bc_h{h0}_s{s}", self.train_dir(task, h0, s) / "checkpoints" / "last" / "pretrained_model", h0, s)
-                      for s in self.cfg.seeds]))
+        if h0 is not None:
+            rows.append((f"PDPO pretrained only (H = {h0}, BC)",
+                         [Evaluation(f"pdpo_bc_h{h0}_s{s}", self.train_dir(task, h0, s) / "checkpoints" / "last" / "pretrained_model", h0, s)
+                          for s in self.cfg.seeds]))
         for h in sorted(self.cfg.horizons):
             rows.append((FINETUNED_LABEL.get(h, f"PDPO (H = {h}, fine-tuned)"), [self.finetuned(task, h, s) for s in self.cfg.seeds]))
+        if self.cfg.crowdnavpp_env_steps:
+            rows.append((CROWDNAVPP_LABEL, [self.crowdnavpp(task, s) for s in self.cfg.seeds]))
         return rows
 
     def shipped_names(self, task: str) -> dict[str, str]:
@@ -314,7 +353,7 @@ class Pipeline:
     def figure_policy(self, task: str) -> Evaluation | None:
         """The PDPO policy drawn in the figures: H = 5 when there is one."""
         if self.cfg.models is None:
-            return self.finetuned(task, self.main_horizon, self.cfg.seeds[0])
+            return None if self.main_horizon is None else self.finetuned(task, self.main_horizon, self.cfg.seeds[0])
         pdpo = sorted((ev for _, ev in self.shipped(task) if ev.horizon is not None), key=lambda ev: ev.horizon != 5)
         return pdpo[0] if pdpo else None
 
@@ -338,31 +377,38 @@ class Pipeline:
         return self._stage(f"eval {SHORT[task]} {ev.name}", argv, done, lambda: eval_main(argv[1:]))
 
     def push(self, task: str) -> None:
-        from .data.hub import push_dataset_to_dir, push_policy_to_dir
+        """The dataset and each trained policy (``best``) to the run's hub-format directory."""
+        from .data.hub import push_dataset_to_dir
 
-        hub = self.root / "hub"
-        repo = self.repo_id(task)
-        target = hub / "datasets" / repo
-        argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=dataset", f"--root={self.dataset_root(task)}",
-                f"--repo_id={repo}", f"--push_to_hub_dir={hub}", "--overwrite=true"]
-        self._stage(f"push dataset {SHORT[task]}", argv, target.exists(),
-                    lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
+        hub, short, seed = self.root / "hub", SHORT[task], self.cfg.seeds[0]
+        if self.cfg.horizons:
+            repo = self.repo_id(task)
+            argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=dataset", f"--root={self.dataset_root(task)}",
+                    f"--repo_id={repo}", f"--push_to_hub_dir={hub}", "--overwrite=true"]
+            self._stage(f"push dataset {short}", argv, (hub / "datasets" / repo).exists(),
+                        lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
         for h in self.cfg.horizons:
-            ev = self.finetuned(task, h, self.cfg.seeds[0])
-            policy_repo = f"{self.cfg.hub_org}/pdpo_{SHORT[task]}_h{h}"
-            pretrained = ev.policy
-            metrics = self.eval_dir(task, ev.name) / "metrics.json"
-            argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={pretrained}",
-                    f"--repo_id={policy_repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
-            curve = self.finetune_dir(task, h, ev.seed) / "training_curves.png"
-            times = self.wall_times()
-            recipe = {"command": self.command, "machine": machine_description(),
-                      "wall_time_s": {n: times[n] for n in (f"collect {SHORT[task]}", f"pretrain {SHORT[task]} H={h} seed={ev.seed}",
-                                                            f"finetune {SHORT[task]} H={h} seed={ev.seed}",
-                                                            f"eval {SHORT[task]} {ev.name}") if n in times}}
-            self._stage(f"push policy {SHORT[task]} H={h}", argv, (hub / "models" / policy_repo).exists() and not self.cfg.rerun_eval,
-                        lambda p=pretrained, r=policy_repo, m=metrics, c=curve, rc=recipe: push_policy_to_dir(
-                            p, r, hub, True, m, c if c.exists() else None, rc))
+            self._push_policy(task, self.finetuned(task, h, seed), f"pdpo_{short}_h{h}", self.finetune_dir(task, h, seed),
+                              [f"collect {short}", f"pretrain {short} H={h} seed={seed}", f"finetune {short} H={h} seed={seed}"])
+        if self.cfg.crowdnavpp_env_steps:
+            self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}", self.crowdnavpp_dir(task, seed),
+                              [f"train crowdnavpp {short} seed={seed}"])
+
+    def _push_policy(self, task: str, ev: Evaluation, name: str, run_dir: Path, stages: list[str]) -> None:
+        """``<hub>/models/<org>/<name>``: the checkpoint with its card (test metrics, the learning
+        curve of ``run_dir``, the command and the wall time of the ``stages`` that made it)."""
+        from .data.hub import push_policy_to_dir
+
+        hub, repo = self.root / "hub", f"{self.cfg.hub_org}/{name}"
+        metrics = self.eval_dir(task, ev.name) / "metrics.json"
+        argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={ev.policy}",
+                f"--repo_id={repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
+        curve = run_dir / "training_curves.png"
+        times = self.wall_times()
+        recipe = {"command": self.command, "machine": machine_description(),
+                  "wall_time_s": {n: times[n] for n in [*stages, f"eval {SHORT[task]} {ev.name}"] if n in times}}
+        self._stage(f"push policy {SHORT[task]} {name}", argv, (hub / "models" / repo).exists() and not self.cfg.rerun_eval,
+                    lambda: push_policy_to_dir(ev.policy, repo, hub, True, metrics, curve if curve.exists() else None, recipe))
 
     def figures(self, task: str) -> tuple[Stage | None, list[tuple[str, Path]]]:
         """Storyboard and multimodality of the PDPO policy (none without one), and the learning
@@ -421,11 +467,18 @@ class Pipeline:
         return self.root / "figures" / SHORT[task]
 
     # -- the whole job -------------------------------------------------------------------------
-    def train(self, task: str) -> dict[tuple[int, int], tuple[Stage, Stage]]:
-        """Demonstrations, then every policy's pretraining and fine-tuning: (H, seed) -> stages."""
-        self.collect(task)
-        return {(h, seed): (self.pretrain(task, h, seed), self.finetune(task, h, seed))
-                for seed in self.cfg.seeds for h in self.cfg.horizons}
+    def train(self, task: str) -> dict[tuple[int | None, int], tuple[Stage | None, Stage]]:
+        """Demonstrations, then every PDPO policy's pretraining and fine-tuning, (H, seed) ->
+        stages, and CrowdNav++'s PPO run, (None, seed) -> (None, stage)."""
+        trained: dict[tuple[int | None, int], tuple[Stage | None, Stage]] = {}
+        if self.cfg.horizons:
+            self.collect(task)
+        for seed in self.cfg.seeds:
+            for h in self.cfg.horizons:
+                trained[h, seed] = (self.pretrain(task, h, seed), self.finetune(task, h, seed))
+            if self.cfg.crowdnavpp_env_steps:
+                trained[None, seed] = (None, self.train_crowdnavpp(task, seed))
+        return trained
 
     def run(self) -> Path:
         start = time.perf_counter()
@@ -453,7 +506,8 @@ class Pipeline:
                                      boundary_audit=not bounded, missing_models=missing))
         c = self.cfg
         budget = None if c.models is not None else Budget(
-            c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps, list(c.seeds), c.test_episodes)
+            c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps, list(c.seeds), c.test_episodes,
+            c.crowdnavpp_env_steps)
         report = write_report(ReportInputs(self.root, budget, tasks, list(self.stages.values()),
                                            time.perf_counter() - start, c.test_episodes, c.preset, c.models))
         print(f"[main] report: {report}")

@@ -64,7 +64,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
                     "## Parameter counts", "## Figures", "## Stages", "## Reproduce"):
         assert section in report, section
     methods = ["ORCA (look-ahead)", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
-               "PDPO (H = 5, fine-tuned)"]
+               "PDPO (H = 5, fine-tuned)", "CrowdNav++ (Const. Vel.)"]
     for name in ("results_bounded.csv", "results_original.csv", "boundary_audit.csv"):
         rows = list(csv.DictReader(io.StringIO((root / "tables" / name).read_text())))
         assert [r["method"] for r in rows] == methods, name
@@ -82,8 +82,15 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
         assert "- Checkpoint: the run's `best`, at " in card
         assert (root / "hub" / "datasets" / "local" / f"crowdnav_orca_{task}" / "meta" / "info.json").exists()
+        baseline = root / "hub" / "models" / "local" / f"crowdnavpp_{task}"
+        assert json.loads((baseline / "config.json").read_text())["type"] == "crowdnavpp"
+        assert (baseline / "learning_curve.png").stat().st_size > 5_000
+        assert f"| train crowdnavpp {task} seed=1000 | " in (baseline / "README.md").read_text()
     commands = json.loads((root / "commands.json").read_text())
     assert commands["pretrain bounded H=5 seed=1000"][0] == "lerobot-train"
+    assert commands["train crowdnavpp original seed=1000"][:2] == ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp"]
+    assert "trained from scratch by `lerobot-crowdnav-train-ppo" in report
+    assert "| CrowdNav++ PPO from scratch per task | 240 env steps |" in report
     tables = {p.name: p.read_text() for p in (root / "tables").iterdir()}
 
     # A rerun skips every stage; re-evaluating the saved checkpoints gives identical tables.
@@ -102,6 +109,7 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
     shipped = tmp_path / "models"
     shutil.copytree(tiny_main / "tiny" / "hub" / "models" / "local", shipped)
     shutil.rmtree(shipped / "pdpo_original_h1")
+    shutil.rmtree(shipped / "crowdnavpp_bounded")
     out = tmp_path / "out"
     pipeline_main([f"--models={shipped}", f"--output_root={out}", "--run=shipped", "--test_episodes=4",
                    "--figure_steps=[0,2]", "--figure_samples=4"])
@@ -111,15 +119,16 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
     report = (root / "report.md").read_text()
     assert "## Policies" in report and "## Budget" not in report and "### Boundary audit" in report
     assert "Not shipped yet (no row): `crowdnavpp_bounded`." in report
-    assert "Not shipped yet (no row): `pdpo_original_h1`, `crowdnavpp_original`." in report
+    assert "Not shipped yet (no row): `pdpo_original_h1`." in report
     methods = {"bounded": ["ORCA (look-ahead)", "straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"],
-               "original": ["ORCA (look-ahead)", "straight", "PDPO (H = 5, fine-tuned)"]}
+               "original": ["ORCA (look-ahead)", "straight", "PDPO (H = 5, fine-tuned)", "CrowdNav++ (Const. Vel.)"]}
     for task, labels in methods.items():
         rows = list(csv.DictReader(io.StringIO((root / "tables" / f"results_{task}.csv").read_text())))
         assert [r["method"] for r in rows] == labels
         for fig in ("storyboard.png", "multimodality.png", "curve_pdpo_" + task + "_h5.png"):
             assert (root / "figures" / task / fig).stat().st_size > 5_000
-        for trained, copy in (("pdpo_ft_h5_s1000", f"pdpo_{task}_h5"), ("orca", "orca")):
+        pairs = [("pdpo_ft_h5_s1000", f"pdpo_{task}_h5"), ("orca", "orca")]
+        for trained, copy in pairs + ([("crowdnavpp_s1000", "crowdnavpp_original")] if task == "original" else []):
             a, b = (json.loads((d / "eval" / task / name / "metrics.json").read_text())
                     for d, name in ((tiny_main / "tiny", trained), (root, copy)))
             keys = ["sr", "cr", "nt", "pl", "itr", "sd", "oob", "mean_return", "n_episodes"]
@@ -157,17 +166,21 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
                          ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_main_and_recipe_configs_parse_and_their_flags_do_too(path):
     """Every main-job config validates, and its bc_args / ft_args are flags that lerobot-train's
-    PDPO config and lerobot-crowdnav-finetune accept."""
+    PDPO config and lerobot-crowdnav-finetune accept, and its crowdnavpp_args lerobot-crowdnav-train-ppo."""
     import draccus
     from lerobot_policy_pdpo import PDPOConfig
 
     from lerobot_crowdnav.pipeline import MainConfig
     from lerobot_crowdnav.rl.finetune import FinetuneConfig
 
+    from lerobot_crowdnav.rl.train_ppo import TrainPPOConfig
+
     cfg = draccus.parse(MainConfig, config_path=str(path), args=[])
     cfg.validate()
+    draccus.parse(TrainPPOConfig, args=list(cfg.crowdnavpp_args)).validate()
     if path.parent.name == "recipes":
-        assert cfg.run == path.stem and len(cfg.tasks) == 1 and len(cfg.horizons) == 1 and cfg.test_episodes == 500
+        assert cfg.run == path.stem and len(cfg.tasks) == 1 and cfg.test_episodes == 500
+        assert (len(cfg.horizons), cfg.crowdnavpp_env_steps > 0) in ((1, False), (0, True))  # one policy each
         assert f"configs/recipes/{path.name}" in path.read_text()  # its own command in the header
     assert all(f.startswith("--policy.") for f in cfg.bc_args), "bc_args: only policy flags are recipe settings"
     draccus.parse(PDPOConfig, args=[f"--{f.removeprefix('--policy.')}" for f in cfg.bc_args])

@@ -115,6 +115,39 @@ def evaluation_lines(metrics: dict | None) -> list[str]:
                     markdown_row(row, bounded)]
 
 
+def best_checkpoint_lines(pretrained: Path) -> list[str]:
+    """Why these weights: a PPO run's ``checkpoints/best`` has ``best.json`` beside it."""
+    import json
+
+    best = pretrained.parent / "best.json"
+    if not best.exists():
+        return []
+    b = json.loads(best.read_text())
+    return [f"- Checkpoint: the run's `best`, at {b['env_steps']:,} env steps (validation success "
+            f"{100 * b['val/success_rate']:.0f} % on the validation seeds, the paper's choice)."]
+
+
+def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: str | None, run: dict | None,
+              algorithm: str, made: str) -> list[str]:
+    """A model card's evaluation table, learning curve (``algorithm``'s), the command that
+    reproduces it (what it ``made``) with its stages' wall times, and how to use it."""
+    lines = evaluation_lines(metrics)
+    if curve:
+        lines += ["", "## Learning curve", "", f"![{algorithm} learning curve]({curve})"]
+    if recipe:
+        times = recipe.get("wall_time_s") or {}
+        lines += ["", "## Reproduce", "", f"From scratch ({made}):", "", "```bash", recipe["command"], "```", ""]
+        if times:
+            lines += ["| stage | wall time (min) |", "|---|---|"]
+            lines += [f"| {name} | {t / 60:.1f} |" for name, t in times.items()]
+            lines += [f"| total | {sum(times.values()) / 60:.1f} |", ""]
+            lines.append(f"Machine: {recipe.get('machine', 'unknown')}.")
+    task = ((run or {}).get("env") or (metrics or {}).get("env") or {}).get("task", "BoundedCrowdNav-v0")
+    return lines + ["", "## Use", "", "```bash",
+                    f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task={task} "
+                    "--eval.n_episodes=50 --seed=2000000000", "```"]
+
+
 def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, recipe: dict | None = None,
                 curve: str | None = None):
     """Model card: architecture, training data and budget, parameter counts, evaluation table;
@@ -128,7 +161,7 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
 
     config = json.loads((pretrained / "config.json").read_text())
     if config.get("type") == "crowdnavpp":
-        return crowdnavpp_card(pretrained, repo_id, config, metrics)
+        return crowdnavpp_card(pretrained, repo_id, config, metrics, recipe, curve)
     train = json.loads((pretrained / "train_config.json").read_text()) if (pretrained / "train_config.json").exists() else {}
     finetune_path = pretrained / "finetune_config.json"
     finetune = json.loads(finetune_path.read_text()) if finetune_path.exists() else None
@@ -169,27 +202,9 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
             "`finetune_config.json` has every setting.",
         ]
-        best = pretrained.parent / "best.json"  # a run's checkpoints/best: why these weights
-        if best.exists():
-            b = json.loads(best.read_text())
-            lines.append(f"- Checkpoint: the run's `best`, at {b['env_steps']:,} env steps (validation success "
-                         f"{100 * b['val/success_rate']:.0f} % on the validation seeds, the paper's choice).")
-    lines += evaluation_lines(metrics)
-    if curve:
-        lines += ["", "## Learning curve", "", f"![diffusion-PPO learning curve]({curve})"]
-    if recipe:
-        times = recipe.get("wall_time_s") or {}
-        lines += ["", "## Reproduce", "", "From scratch (demonstrations, pretraining, fine-tuning, evaluation, this directory):",
-                  "", "```bash", recipe["command"], "```", ""]
-        if times:
-            lines += ["| stage | wall time (min) |", "|---|---|"]
-            lines += [f"| {name} | {t / 60:.1f} |" for name, t in times.items()]
-            lines += [f"| total | {sum(times.values()) / 60:.1f} |", ""]
-            lines.append(f"Machine: {recipe.get('machine', 'unknown')}.")
-    task = ((finetune or {}).get("env") or (metrics or {}).get("env") or {}).get("task", "BoundedCrowdNav-v0")
-    lines += ["", "## Use", "", "```bash",
-              f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task={task} "
-              "--eval.n_episodes=50 --seed=2000000000", "```"]
+        lines += best_checkpoint_lines(pretrained)
+    lines += card_tail(repo_id, metrics, recipe, curve, finetune, "diffusion-PPO",
+                       "demonstrations, pretraining, fine-tuning, evaluation, this directory")
     data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
                          tags=["robotics", "lerobot", "pdpo", "diffusion-policy", "crowd-navigation"],
                          datasets=[dataset] if dataset else None)
@@ -202,9 +217,10 @@ CROWDNAVPP_DEAD_HEAD = 514
 CROWDNAVPP_REFERENCE = 2_502_535
 
 
-def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None = None):
+def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None = None,
+                    recipe: dict | None = None, curve: str | None = None):
     """Model card of a CrowdNav++ policy trained by lerobot-crowdnav-train-ppo: architecture, the
-    parameter count against the reference's, the PPO run, the evaluation table."""
+    parameter count against the reference's, the PPO run, then ``card_tail``."""
     import json
     import math
 
@@ -238,9 +254,10 @@ def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict 
             f"{run['seed']}: Adam lr {ppo['actor_lr']} eps {ppo['adam_eps']}, {ppo['n_steps']}-step rollouts, "
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef']}, clipped value loss {ppo['clip_vloss']}, "
             f"gradient norm {ppo['max_grad_norm']}; `train_ppo_config.json` has every setting.")
+        lines += best_checkpoint_lines(pretrained)
     else:
         lines.append("- Not trained by lerobot-crowdnav-train-ppo (no `train_ppo_config.json`).")
-    lines += evaluation_lines(metrics)
+    lines += card_tail(repo_id, metrics, recipe, curve, run, "PPO", "PPO training, evaluation, this directory")
     data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
                          tags=["robotics", "lerobot", "crowdnavpp", "reinforcement-learning", "crowd-navigation"])
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")

@@ -135,6 +135,7 @@ class Budget:
     ft_env_steps: int
     seeds: list[int]
     test_episodes: int
+    crowdnavpp_env_steps: int = 0
 
 
 @dataclass(frozen=True)
@@ -212,6 +213,8 @@ def _budget_lines(b: Budget) -> list[str]:
         f"| BC pretraining (lerobot-train, batch {b.bc_batch_size}) | "
         + (f"{b.bc_epochs:g} epochs" if b.bc_epochs > 0 else f"{b.bc_steps} steps") + " | 200 epochs |",
         f"| diffusion-PPO fine-tuning per policy | {b.ft_env_steps:,} env steps | about 12 M env steps |",
+        *([f"| CrowdNav++ PPO from scratch per task | {b.crowdnavpp_env_steps:,} env steps | 10 M (CrowdNav++'s "
+           "holonomic robot) |"] if b.crowdnavpp_env_steps else []),
         f"| training seeds | {', '.join(map(str, b.seeds))} | n/a |",
         f"| test episodes per method | {b.test_episodes} (seeds {SEED_SPLITS['test'][0]} ...) | 500 |",
         f"| simulator preset | `{b.preset}` | `paper` |", "",
@@ -236,12 +239,14 @@ def _provenance(ev: Evaluated, label: str, cmd) -> list[str]:
         notes.append(f"  - shipped model `{ev.checkpoint}`: its README.md names the recipe and the command that made it")
     elif ev.checkpoint is not None and ev.finetune is None:
         notes.append(f"  - pretrained by `{cmd(ev.pretrain)}` (checkpoint `last`)")
-    elif ev.checkpoint is not None:
+    elif ev.checkpoint is not None:  # PPO's `best`: fine-tuned after pretraining, or trained from scratch
         best = json.loads((ev.checkpoint.parent / "best.json").read_text())
-        notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
-        notes.append(f"  - fine-tuned by `{cmd(ev.finetune)}`; checkpoint `best` "
-                     f"= {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
-                     + (": no validation beat the pretrained weights, so they are the best" if best["env_steps"] == 0 else ""))
+        start = "pretrained" if ev.pretrain is not None else "initial"
+        if ev.pretrain is not None:
+            notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
+        notes.append(f"  - {'fine-tuned' if ev.pretrain is not None else 'trained from scratch'} by `{cmd(ev.finetune)}`; "
+                     f"checkpoint `best` = {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
+                     + (f": no validation beat the {start} weights, so they are the best" if best["env_steps"] == 0 else ""))
     return notes
 
 
