@@ -326,6 +326,17 @@ def test_tiny_training_run_writes_a_checkpoint_that_loads_and_evaluates(tmp_path
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", "--env.preset=crowdnavpp",
                f"--output_dir={tmp_path / 'eval'}"])
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
+    # lerobot's own evaluation loads it too (reset() per episode, memory carried by select_action).
+    import subprocess
+    import sys
+
+    ev = subprocess.run(
+        [str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={path}", "--env.type=crowdnav",
+         "--env.task=CrowdNav-v0", "--eval.n_episodes=2", "--eval.batch_size=2", "--policy.device=cpu",
+         f"--output_dir={tmp_path / 'lerobot_eval'}", "--seed=2000000000"], capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    info = json.loads((tmp_path / "lerobot_eval" / "eval_info.json").read_text())
+    assert info["per_group"]["crowdnav"]["n_episodes"] == 2
 
 
 def test_resume_is_bitwise(tmp_path):

@@ -24,7 +24,8 @@ def test_shipped_model_has_its_card_and_evaluates(path, tmp_path):
     for section in ("## Evaluation", "500 test episodes", "## Learning curve", "## Reproduce", "| total |"):
         assert section in card, section
     assert (path / "learning_curve.png").stat().st_size > 10_000
-    task = json.loads((path / "finetune_config.json").read_text())["env"]["task"]
+    run = next(path / name for name in ("finetune_config.json", "train_ppo_config.json") if (path / name).exists())
+    task = json.loads(run.read_text())["env"]["task"]  # PDPO's fine-tuning run or CrowdNav++'s PPO run
     eval_main([f"--policy.path={path}", f"--env.task={task}", "--eval.n_episodes=4", "--eval.split=test",
                f"--output_dir={tmp_path}"])
     metrics = json.loads((tmp_path / "metrics.json").read_text())
