@@ -305,6 +305,31 @@ def test_frozen_encoder_scores_from_stored_latents_and_stays_put(pretrained, tmp
         assert torch.equal(a, b)
 
 
+@pytest.mark.parametrize("critic_input", ["state", "latent+state"])
+def test_critic_reads_its_input_and_a_checkpoint_keeps_it(pretrained, tmp_path, critic_input):
+    """--ppo.critic_input: V of the normalized observation (and the latent); no value gradient
+    reaches the encoder; the saved critic loads with its setting and is refused with another."""
+    cfg = DiffusionPPOConfig(critic_input=critic_input)
+    agent = load_agent(pretrained, cfg, seed=3).eval()
+    obs = torch.as_tensor(CrowdNavVectorEnv(4).reset(seed=500_000_000)[0], dtype=torch.float32)
+    state = agent._normalize(obs)
+    z = agent.policy.actor.encoder(state)
+    x = state if critic_input == "state" else torch.cat([z, state], dim=-1)
+    torch.testing.assert_close(agent.value(obs, None), agent.critic.net(x).squeeze(-1))
+    agent.critic(z, state).sum().backward()
+    assert all(p.grad is None for p in agent.policy.actor.encoder.parameters())
+
+    run(pretrained, tmp_path / "run", "--env_steps=32", f"--ppo.critic_input={critic_input}")
+    path = tmp_path / "run" / "checkpoints" / "last" / "pretrained_model"
+    saved = load_agent(path, cfg, seed=0).critic
+    with torch.no_grad():
+        assert not torch.equal(saved.net[0].weight, agent.critic.net[0].weight)  # trained, then loaded
+    with pytest.raises(ValueError, match="critic_input"):
+        load_agent(path, DiffusionPPOConfig(), seed=0)
+    with pytest.raises(SystemExit, match="critic_input"):
+        run(pretrained, tmp_path / "bad", "--ppo.critic_input=raw")
+
+
 def test_resume_continues_the_counter_and_reproduces_the_next_batch(pretrained, tmp_path):
     straight = run(pretrained, tmp_path / "a", "--env_steps=64")
     first = run(pretrained, tmp_path / "b", "--env_steps=32")

@@ -166,6 +166,7 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
     finetune_path = pretrained / "finetune_config.json"
     finetune = json.loads(finetune_path.read_text()) if finetune_path.exists() else None
     counts = parameter_counts(pretrained / "model.safetensors")
+    critic_input = (finetune or {}).get("ppo", {}).get("critic_input", "latent")
     dataset = (train.get("dataset") or {}).get("repo_id")
     lines = [
         f"# {repo_id}", "",
@@ -181,7 +182,9 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
         f"- Diffusion actor: denoiser MLP {config.get('denoiser_dims')} (ReLU) with a {config.get('time_embed_dim')}-dim "
         f"sinusoidal timestep embedding; cosine schedule, epsilon prediction, K = {config.get('num_diffusion_steps')} "
         f"DDPM steps; EMA sampling weights: {config.get('use_ema')} (decay {config.get('ema_decay')}).",
-        f"- Value head (critic): MLP {config.get('value_mlp_dims')}, Mish.",
+        f"- Value head (critic): MLP {config.get('value_mlp_dims')}, Mish, on "
+        + {"latent": "the encoder's latent z (the paper)", "state": "the normalized observation",
+           "latent+state": "the encoder's latent z and the normalized observation"}[critic_input] + ".",
         f"- Parameters: actor (encoder + denoiser) {counts['actor'] / 1e6:.3f} M (paper: 0.848 M); "
         + (f"critic {counts['critic'] / 1e6:.3f} M (paper: 0.201 M)." if counts["critic"]
            else "no critic (a BC policy: diffusion PPO adds one)."), "",

@@ -106,9 +106,16 @@ class DiffusionPPOConfig(PPOConfig):
     # The encoder costs far more than the denoiser, so each state's latent is computed once, in the
     # rollout, and reused by every update epoch: docs/performance.md measures what it saves.
     freeze_encoder: bool = False
+    # What the critic reads: "latent" (the paper's V(z), the actor's encoding through a
+    # stop-gradient), "state" (the normalized observation: DPPO's critic for state inputs) or
+    # "latent+state". A frozen BC encoding is not trained to tell good states from bad ones:
+    # docs/finetune.md measures the critics' explained variance.
+    critic_input: str = "latent"
 
     def validate(self) -> None:
         super().validate()
+        if self.critic_input not in ("latent", "state", "latent+state"):
+            raise ValueError(f"--ppo.critic_input must be latent, state or latent+state, got {self.critic_input!r}")
         if self.ft_denoising_steps < 1:
             raise ValueError(f"--ppo.ft_denoising_steps must be >= 1, got {self.ft_denoising_steps}")
         if self.ddim_steps < 0 or 0 < self.ddim_steps < self.ft_denoising_steps:

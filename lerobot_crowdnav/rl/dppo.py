@@ -27,6 +27,7 @@ from lerobot_policy_pdpo.modeling_pdpo import DiffusionActor, PDPOPolicy, mlp
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
+from ..layout import obs_dim
 from ..sim.config import CrowdSimConfig
 from .agent import Scores, Step, check_observation_layout, read_policy_config
 from .config import DiffusionPPOConfig
@@ -36,14 +37,27 @@ CRITIC_FILE = "critic.safetensors"
 
 
 class ValueHead(nn.Module):
-    """V(z): MLP ``value_mlp_dims`` ([256, 256, 256] in the paper) with Mish."""
+    """V(s): MLP ``value_mlp_dims`` ([256, 256, 256] in the paper) with Mish, reading
+    ``inputs`` (``DiffusionPPOConfig.critic_input``): the encoder's latent z (the paper), the
+    normalized observation (DPPO's critic for state inputs) or both, concatenated."""
 
-    def __init__(self, latent_dim: int, dims: tuple[int, ...]):
+    def __init__(self, latent_dim: int, dims: tuple[int, ...], inputs: str = "latent", state_dim: int = 0):
         super().__init__()
-        self.net = mlp([latent_dim, *dims, 1], activation=nn.Mish)
+        self.inputs = inputs
+        width = {"latent": latent_dim, "state": state_dim, "latent+state": latent_dim + state_dim}[inputs]
+        self.net = mlp([width, *dims, 1], activation=nn.Mish)
 
-    def forward(self, z: Tensor) -> Tensor:
-        return self.net(z).squeeze(-1)
+    def forward(self, z: Tensor, state: Tensor) -> Tensor:
+        """``z (B, Z)`` (no gradient reaches the encoder through it), ``state (B, D)``."""
+        x = {"latent": lambda: z.detach(), "state": lambda: state,
+             "latent+state": lambda: torch.cat([z.detach(), state], dim=-1)}[self.inputs]()
+        return self.net(x).squeeze(-1)
+
+
+def make_critic(pcfg, cfg: DiffusionPPOConfig) -> ValueHead:
+    """A fresh critic of policy config ``pcfg`` reading ``cfg.critic_input``."""
+    return ValueHead(pcfg.latent_dim, pcfg.value_mlp_dims, cfg.critic_input,
+                     obs_dim(pcfg.num_humans, pcfg.prediction_steps))
 
 
 def transition_log_prob(actor: DiffusionActor, z: Tensor, chain: Tensor, min_std: float) -> Tensor:
@@ -111,11 +125,12 @@ class DiffusionPPOAgent(nn.Module):
         logp = transition_log_prob(self.policy.actor, z, chain, self.cfg.min_logprob_denoising_std)
         # The critic reads the shared encoder's latent through a stop-gradient, so a fresh critic
         # cannot overwrite the pretrained features.
-        return Scores(logp.view(L, M, -1), self.critic(z.detach()).view(L, M), None)
+        return Scores(logp.view(L, M, -1), self.critic(z, samples["state"].flatten(0, 1)).view(L, M), None)
 
     @torch.no_grad()
     def value(self, obs: Tensor, memory: None) -> Tensor:
-        return self.critic(self.policy.actor.encoder(self._normalize(obs)))
+        state = self._normalize(obs)
+        return self.critic(self.policy.actor.encoder(state), state)
 
     def save(self, path: Path) -> None:
         """A lerobot pretrained_model directory plus ``critic.safetensors``."""
@@ -145,8 +160,12 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
     loaded = PDPOPolicy.from_pretrained(path, config=pcfg)
     if pcfg.ft_denoising_steps:
         policy = loaded
-        critic = ValueHead(pcfg.latent_dim, pcfg.value_mlp_dims)
-        critic.load_state_dict(_saved_critic(path))
+        critic = make_critic(pcfg, cfg)
+        saved = _saved_critic(path)
+        if saved["net.0.weight"].shape != critic.net[0].weight.shape:
+            raise ValueError(f"{path}'s critic does not read --ppo.critic_input={cfg.critic_input} (its first layer takes "
+                             f"{saved['net.0.weight'].shape[1]} inputs): pass the critic_input it was fine-tuned with")
+        critic.load_state_dict(saved)
     else:
         ft_cfg = copy.deepcopy(pcfg)
         ft_cfg.use_ema, ft_cfg.ft_denoising_steps, ft_cfg.ddim_steps = False, ft, cfg.ddim_steps
@@ -155,7 +174,7 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
         policy.actor.load_state_dict(weights)
         policy.base.load_state_dict(weights)
         torch.manual_seed(seed)  # the fresh critic
-        critic = ValueHead(pcfg.latent_dim, pcfg.value_mlp_dims)
+        critic = make_critic(pcfg, cfg)
     pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
     return DiffusionPPOAgent(policy, critic, pre, post, cfg)
 
