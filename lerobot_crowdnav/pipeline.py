@@ -97,6 +97,13 @@ class MainConfig:
     # lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]): a recipe's own settings.
     bc_args: list[str] = field(default_factory=list)
     ft_args: list[str] = field(default_factory=list)
+    # A second diffusion-PPO stage per policy (0: none): it continues from the first stage's `best`
+    # checkpoint (critic included) for ft2_env_steps env steps with the first stage's flags, then
+    # ft2_args on top (later flags win), e.g. ["--ppo.freeze_encoder=false"]: the recipes train the
+    # encoder once the cheap frozen-encoder stage has plateaued (docs/recipes.md). Its training
+    # episodes and sampling noise come from seeds of their own (seed + 1, env seed 520,000,000).
+    ft2_env_steps: int = 0
+    ft2_args: list[str] = field(default_factory=list)
     # The CrowdNav++ (Const. Vel.) baseline: PPO env steps per task of CrowdNav++'s network trained
     # from scratch by lerobot-crowdnav-train-ppo with the reference's PPO settings (reference: 10 M;
     # docs/crowdnavpp.md); 0 = no CrowdNav++ row. Further flags of that run (e.g. "--val.freq=...").
@@ -123,8 +130,8 @@ class MainConfig:
             raise ValueError(f"--tasks must be a non-empty subset of {list(TASKS)}, got {self.tasks}")
         if any(h < 1 for h in self.horizons):
             raise ValueError(f"--horizons must be positive, got {self.horizons}")
-        if self.crowdnavpp_env_steps < 0:
-            raise ValueError(f"--crowdnavpp_env_steps must be >= 0, got {self.crowdnavpp_env_steps}")
+        if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0:
+            raise ValueError("--crowdnavpp_env_steps and --ft2_env_steps must be >= 0")
         if self.models is None and not self.horizons and not self.crowdnavpp_env_steps:
             raise ValueError("nothing to train: give --horizons (PDPO) and/or --crowdnavpp_env_steps (CrowdNav++)")
         if not self.seeds:
@@ -212,8 +219,16 @@ class Pipeline:
     def train_dir(self, task: str, h: int, seed: int) -> Path:
         return self.root / "train" / f"{SHORT[task]}_h{h}_s{seed}"
 
-    def finetune_dir(self, task: str, h: int, seed: int) -> Path:
-        return self.root / "finetune" / f"{SHORT[task]}_h{h}_s{seed}"
+    def finetune_dir(self, task: str, h: int, seed: int, stage: int = 1) -> Path:
+        return self.root / "finetune" / (f"{SHORT[task]}_h{h}_s{seed}" + ("" if stage == 1 else f"_stage{stage}"))
+
+    @property
+    def ft_stages(self) -> list[int]:
+        """The diffusion-PPO stages of each policy: [1], or [1, 2] with ``ft2_env_steps``."""
+        return [1, 2] if self.cfg.ft2_env_steps else [1]
+
+    def finetune_stage_name(self, task: str, h: int, seed: int, stage: int) -> str:
+        return f"finetune{'' if stage == 1 else stage} {SHORT[task]} H={h} seed={seed}"
 
     def crowdnavpp_dir(self, task: str, seed: int) -> Path:
         return self.root / "crowdnavpp" / f"{SHORT[task]}_s{seed}"
@@ -263,23 +278,27 @@ class Pipeline:
 
         return self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, done, run)
 
-    def finetune(self, task: str, h: int, seed: int) -> Stage:
+    def finetune(self, task: str, h: int, seed: int, stage: int = 1) -> Stage:
+        """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``best`` (stage 2)."""
         from .rl.finetune import main as finetune_main
 
-        out = self.finetune_dir(task, h, seed)
-        saved = out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
-        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= self.cfg.ft_env_steps
         c = self.cfg
-        argv = ["lerobot-crowdnav-finetune",
-                f"--policy.path={self.train_dir(task, h, seed) / 'checkpoints' / 'last' / 'pretrained_model'}",
-                *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={c.ft_env_steps}",
+        out = self.finetune_dir(task, h, seed, stage)
+        steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
+        saved = out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
+        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= steps
+        source = (self.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
+                  else self.finetune_dir(task, h, seed) / "checkpoints" / "best") / "pretrained_model"
+        argv = ["lerobot-crowdnav-finetune", f"--policy.path={source}",
+                *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
                 f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
-                f"--save_freq={max(c.ft_val_freq, c.ft_env_steps // 4)}", f"--seed={seed}", f"--output_dir={out}",
-                *c.ft_args]
+                f"--save_freq={max(c.ft_val_freq, steps // 4)}", f"--output_dir={out}", *c.ft_args]
+        argv += [f"--seed={seed}"] if stage == 1 else [f"--seed={seed + 1}", "--env_seed=520000000", *c.ft2_args]
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
-        return self._stage(f"finetune {SHORT[task]} H={h} seed={seed}", argv, done, lambda: finetune_main(argv[1:] + resume))
+        return self._stage(self.finetune_stage_name(task, h, seed, stage), argv, done,
+                           lambda: finetune_main(argv[1:] + resume))
 
     def train_crowdnavpp(self, task: str, seed: int) -> Stage:
         """CrowdNav++ from scratch by PPO (the reference's settings are the CLI's defaults)."""
@@ -308,8 +327,9 @@ class Pipeline:
         return 5 if 5 in self.cfg.horizons else next(iter(self.cfg.horizons), None)
 
     def finetuned(self, task: str, h: int, seed: int) -> Evaluation:
-        return Evaluation(f"pdpo_ft_h{h}_s{seed}", self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model",
-                          h, seed, finetuned=True)
+        """The policy's final diffusion-PPO stage's ``best`` checkpoint."""
+        out = self.finetune_dir(task, h, seed, self.ft_stages[-1])
+        return Evaluation(f"pdpo_ft_h{h}_s{seed}", out / "checkpoints" / "best" / "pretrained_model", h, seed, finetuned=True)
 
     def methods(self, task: str) -> list[tuple[str, list[Evaluation]]]:
         """The table rows: (label, the evaluations averaged in it, one per training seed)."""
@@ -388,8 +408,10 @@ class Pipeline:
             self._stage(f"push dataset {short}", argv, (hub / "datasets" / repo).exists(),
                         lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
         for h in self.cfg.horizons:
-            self._push_policy(task, self.finetuned(task, h, seed), f"pdpo_{short}_h{h}", self.finetune_dir(task, h, seed),
-                              [f"collect {short}", f"pretrain {short} H={h} seed={seed}", f"finetune {short} H={h} seed={seed}"])
+            self._push_policy(task, self.finetuned(task, h, seed), f"pdpo_{short}_h{h}",
+                              self.finetune_dir(task, h, seed, self.ft_stages[-1]),
+                              [f"collect {short}", f"pretrain {short} H={h} seed={seed}",
+                               *(self.finetune_stage_name(task, h, seed, n) for n in self.ft_stages)])
         if self.cfg.crowdnavpp_env_steps:
             self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}", self.crowdnavpp_dir(task, seed),
                               [f"train crowdnavpp {short} seed={seed}"])
@@ -454,9 +476,14 @@ class Pipeline:
                 return
             runs = {}
             for h in sorted(self.cfg.horizons, reverse=True):
-                progress = self.finetune_dir(task, h, seed) / "progress.jsonl"
-                runs[FINETUNED_LABEL.get(h, f"PDPO (H = {h})").replace(", fine-tuned", "")] = [
-                    json.loads(line) for line in progress.read_text().splitlines()]
+                run_label = FINETUNED_LABEL.get(h, f"PDPO (H = {h})").replace(", fine-tuned", "")
+                runs[run_label] = [json.loads(line) for line in (self.finetune_dir(task, h, seed) / "progress.jsonl").read_text().splitlines()]
+                if 2 in self.ft_stages:  # drawn from where it starts: stage 1's best checkpoint
+                    stage2 = self.finetune_dir(task, h, seed, 2)
+                    best = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
+                    start = json.loads(best.read_text())["env_steps_done"]
+                    runs[f"{run_label}, stage 2"] = [{**r, "env_steps": r["env_steps"] + start} for r in
+                                                 (json.loads(line) for line in (stage2 / "progress.jsonl").read_text().splitlines())]
             plot_finetune_curves(runs, curves[0][1])
 
         done = (all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval
@@ -475,7 +502,8 @@ class Pipeline:
             self.collect(task)
         for seed in self.cfg.seeds:
             for h in self.cfg.horizons:
-                trained[h, seed] = (self.pretrain(task, h, seed), self.finetune(task, h, seed))
+                pretrain = self.pretrain(task, h, seed)
+                trained[h, seed] = (pretrain, [self.finetune(task, h, seed, n) for n in self.ft_stages][-1])
             if self.cfg.crowdnavpp_env_steps:
                 trained[None, seed] = (None, self.train_crowdnavpp(task, seed))
         return trained
@@ -507,7 +535,7 @@ class Pipeline:
         c = self.cfg
         budget = None if c.models is not None else Budget(
             c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps, list(c.seeds), c.test_episodes,
-            c.crowdnavpp_env_steps)
+            c.crowdnavpp_env_steps, c.ft2_env_steps)
         report = write_report(ReportInputs(self.root, budget, tasks, list(self.stages.values()),
                                            time.perf_counter() - start, c.test_episodes, c.preset, c.models))
         print(f"[main] report: {report}")

@@ -80,7 +80,13 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         card = (model / "README.md").read_text()
         assert "![diffusion-PPO learning curve](learning_curve.png)" in card and " ".join(["lerobot-crowdnav-main", *argv]) in card
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
+        assert f"| finetune2 {task} H=5 seed=1000 | " in card and "- It continued a fine-tuned checkpoint: " in card
         assert "- Checkpoint: the run's `best`, at " in card
+        # the shipped policy is stage 2's: it started from stage 1's best with its own flags and seeds
+        stage2, first = (json.loads((model / name).read_text()) for name in ("finetune_config.json", "source_finetune_config.json"))
+        assert stage2["policy"]["path"] == str(root / "finetune" / f"{task}_h5_s1000" / "checkpoints" / "best" / "pretrained_model")
+        assert (stage2["ppo"]["update_epochs"], first["ppo"]["update_epochs"]) == (3, 5)
+        assert (stage2["seed"], stage2["env_seed"], stage2["env_steps_done"]) == (1001, 520_000_000, 128)
         assert (root / "hub" / "datasets" / "local" / f"crowdnav_orca_{task}" / "meta" / "info.json").exists()
         baseline = root / "hub" / "models" / "local" / f"crowdnavpp_{task}"
         assert json.loads((baseline / "config.json").read_text())["type"] == "crowdnavpp"
@@ -91,6 +97,8 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert commands["train crowdnavpp original seed=1000"][:2] == ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp"]
     assert "trained from scratch by `lerobot-crowdnav-train-ppo" in report
     assert "| CrowdNav++ PPO from scratch per task | 240 env steps |" in report
+    assert "| 256 env steps, then 128 more from its best checkpoint (stage 2) |" in report
+    assert commands["finetune2 original H=1 seed=1000"][0] == "lerobot-crowdnav-finetune"
     tables = {p.name: p.read_text() for p in (root / "tables").iterdir()}
 
     # A rerun skips every stage; re-evaluating the saved checkpoints gives identical tables.
@@ -184,4 +192,4 @@ def test_main_and_recipe_configs_parse_and_their_flags_do_too(path):
         assert f"configs/recipes/{path.name}" in path.read_text()  # its own command in the header
     assert all(f.startswith("--policy.") for f in cfg.bc_args), "bc_args: only policy flags are recipe settings"
     draccus.parse(PDPOConfig, args=[f"--{f.removeprefix('--policy.')}" for f in cfg.bc_args])
-    draccus.parse(FinetuneConfig, args=list(cfg.ft_args)).ppo.validate()
+    draccus.parse(FinetuneConfig, args=[*cfg.ft_args, *cfg.ft2_args]).ppo.validate()

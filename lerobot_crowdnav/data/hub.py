@@ -205,6 +205,13 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
             "`finetune_config.json` has every setting.",
         ]
+        previous = pretrained / "source_finetune_config.json"
+        if previous.exists():  # this run continued a fine-tuned checkpoint
+            prev = json.loads(previous.read_text())
+            lines.append(f"- It continued a fine-tuned checkpoint: {prev['env_steps_done']:,} env steps of diffusion PPO "
+                         f"before (freeze_encoder {prev['ppo'].get('freeze_encoder', False)}, clip "
+                         f"{prev['ppo']['clip_ploss_coef_base']} -> {prev['ppo']['clip_ploss_coef']}; "
+                         "`source_finetune_config.json` has every setting), from the same pretraining.")
         lines += best_checkpoint_lines(pretrained)
     lines += card_tail(repo_id, metrics, recipe, curve, finetune, "diffusion-PPO",
                        "demonstrations, pretraining, fine-tuning, evaluation, this directory")
@@ -283,7 +290,7 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
         raise ValueError(f"refusing pickled files {pickles}: the hub format holds safetensors only")
     files = [p for p in pretrained.iterdir() if p.is_file() and (
         p.name in ("config.json", "model.safetensors", "critic.safetensors", "train_config.json", "finetune_config.json",
-                   "train_ppo_config.json")
+                   "source_finetune_config.json", "train_ppo_config.json")
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
     curve = Path(curve) if curve else None

@@ -31,8 +31,11 @@ from .ppo import RunningRewardScaler
 from .run_log import RunLog
 from .validation import episode_stats, validate
 
-# Files of the source checkpoint carried into every checkpoint (provenance: lerobot-train's record).
+# Files of the source checkpoint carried into every checkpoint (provenance: lerobot-train's
+# record); a source written by a PPO run also passes on its run's settings as
+# ``source_<config_name>`` (a run that continues another one).
 CARRIED_FILES = ("train_config.json",)
+SOURCE_PREFIX = "source_"
 
 
 @dataclass
@@ -156,15 +159,19 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
     collector = Collector(env, agent, scaler, torch.Generator(device=acc.device).manual_seed(cfg.seed * 1000 + rank))
     rng = np.random.default_rng([cfg.seed, rank])  # minibatch order
     val_env = CrowdNavVectorEnv(cfg.val.n_episodes, config=sim_cfg) if main else None
-    carried = [source / name for name in CARRIED_FILES] if source is not None else []
+    carried = {} if source is None else {name: source / name for name in CARRIED_FILES}
+    if source is not None and not resumed:
+        carried[SOURCE_PREFIX + config_name] = source / config_name
+    elif source is not None:  # resuming: what the run's first source passed on is in the last checkpoint
+        carried[SOURCE_PREFIX + config_name] = source / (SOURCE_PREFIX + config_name)
     # wall_s: training wall time so far, summed over resumed invocations (the learning curve's clock).
     progress = {"iteration": 0, "env_steps": 0, "best_val_sr": -1.0, "wall_s": 0.0}
 
     def save_policy(path: Path) -> None:
         agent.save(path)
-        for f in carried:
+        for name, f in carried.items():
             if f.exists():
-                (path / f.name).write_bytes(f.read_bytes())
+                (path / name).write_bytes(f.read_bytes())
         (path / config_name).write_text(json.dumps(
             {**settings, "world_size": world, "env_steps_done": progress["env_steps"]}, indent=2))
 
