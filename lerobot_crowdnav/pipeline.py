@@ -21,7 +21,8 @@ A larger budget on a rerun extends the incomplete stages (lerobot-train resumes 
     outputs/<run>/
         datasets/<task>/               ORCA demonstrations (LeRobotDataset)
         train/<task>_h<H>_s<seed>/     lerobot-train runs (checkpoints/last/pretrained_model)
-        finetune/<task>_h<H>_s<seed>/  diffusion-PPO runs (checkpoints/best/pretrained_model)
+        finetune/<task>_h<H>_s<seed>/  diffusion-PPO runs (checkpoints/best/pretrained_model); with
+                                       --ft2_env_steps, <...>_stage2/ continues from its best
         crowdnavpp/<task>_s<seed>/     CrowdNav++ PPO runs (checkpoints/best/pretrained_model)
         eval/<task>/<method>/          metrics.json (+ a GIF of the first test episode)
         hub/                           datasets/<org>/<name>, models/<org>/<name>
