@@ -90,12 +90,16 @@ def test_padded_rows_do_not_change_the_outputs(policy):
         torch.testing.assert_close(x, y, rtol=0, atol=1e-6)
 
 
-def test_visible_humans_only_gives_what_all_slots_give(policy):
-    """The speed-up that runs the self-attention per group of similar visible counts over the
-    visible prefix only: outputs and gradients as when every one of the N slots is encoded."""
-    counts = [0, 1, 2, 3, 5, 7, 8, 11, 13, 16, 19, 20, 4, 6, 0, 9, 12, 20, 1, 3]
+@pytest.mark.parametrize("repeat", [1, 4])  # 200 bucketed human rows: maps in turn; 800: composed
+def test_visible_humans_only_gives_what_all_slots_give(policy, repeat):
+    """The speed-ups that run the self-attention per group of similar visible counts over the
+    visible prefix only and, for many rows, apply the out-projection and the spatial linear as
+    one map: outputs and gradients as when every one of the N slots is encoded by the
+    reference's layers in turn."""
+    counts = [0, 1, 2, 3, 5, 7, 8, 11, 13, 16, 19, 20, 4, 6, 0, 9, 12, 20, 1, 3] * repeat
     obs = random_obs(len(counts), counts, seed=3)
     net = policy.net
+    assert net.composed_out(200) is None and net.composed_out(800) is not None
 
     def every_slot(state):
         o = split_obs(state, N, L)
@@ -107,7 +111,8 @@ def test_visible_humans_only_gives_what_all_slots_give(policy):
         fast, full = net.encode(obs), every_slot(obs)
         for x, y in zip(fast, full, strict=True):
             torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
-        grads = [torch.autograd.grad(out[1].square().sum(), list(net.human_attn.parameters())) for out in (fast, full)]
+        params = [*net.human_attn.parameters(), *net.spatial_linear.parameters()]
+        grads = [torch.autograd.grad(out[1].square().sum(), params) for out in (fast, full)]
     for x, y in zip(*grads, strict=True):
         torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4)  # float sums in another order
 

@@ -65,6 +65,12 @@ def split_obs(state: Tensor, num_humans: int, prediction_steps: int) -> CrowdNav
     return CrowdNavPPInputs(robot, humans, detected, visible)
 
 
+def compose_affine(w2: Tensor, b2: Tensor, w1: Tensor, b1: Tensor) -> tuple[Tensor, Tensor]:
+    """``x -> W2 (W1 x + b1) + b2`` as one affine map ``(W2 W1, W2 b1 + b2)``; leading batch
+    dimensions of the weights ``(..., out, in)`` and biases ``(..., out)`` compose pairwise."""
+    return w2 @ w1, (w2 @ b1[..., None])[..., 0] + b2
+
+
 def _orthogonal(layer: nn.Linear, gain: float) -> nn.Linear:
     nn.init.orthogonal_(layer.weight, gain)
     nn.init.zeros_(layer.bias)
@@ -81,7 +87,8 @@ class HumanSelfAttention(nn.Module):
     are applied as one, ``W_in (W x + b) + b_in = (W_in W) x + (W_in b + b_in)``: composing costs
     d^3 once instead of d^2 per row, so the projections' arithmetic falls by a third. Fewer rows
     (acting) apply them one after the other. Parameters, gradients and outputs (to float
-    rounding) are the reference's either way."""
+    rounding) are the reference's either way. ``attend`` stops before the out-projection, so that
+    a caller may compose it with the linear map that follows (``CrowdNavPPNet.human_features``)."""
 
     def __init__(self, cfg: CrowdNavPPConfig):
         super().__init__()
@@ -100,11 +107,16 @@ class HumanSelfAttention(nn.Module):
         w_in, b_in = self.attention.in_proj_weight.view(3, d, d), self.attention.in_proj_bias.view(3, d)
         w = torch.stack([self.q_linear.weight, self.k_linear.weight, self.v_linear.weight])
         b = torch.stack([self.q_linear.bias, self.k_linear.bias, self.v_linear.bias])
-        return torch.bmm(w_in, w).flatten(0, 1), (torch.bmm(w_in, b[..., None])[..., 0] + b_in).flatten()
+        weight, bias = compose_affine(w_in, b_in, w, b)
+        return weight.flatten(0, 1), bias.flatten()
 
     def forward(self, humans: Tensor, visible: Tensor, composed: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """humans (B, N, 2(L+1)), visible (B, N) -> (B, N, attn_size); ``composed``: from
         ``composed_qkv`` (computed once for several calls), or None: the two maps in turn."""
+        return self.attention.out_proj(self.attend(humans, visible, composed))
+
+    def attend(self, humans: Tensor, visible: Tensor, composed: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """``forward`` without the out-projection: the heads' outputs, concatenated (B, N, attn_size)."""
         e = self.embedding(humans)
         (b, n, d), heads = e.shape, self.attention.num_heads
         if composed is None:
@@ -115,7 +127,7 @@ class HumanSelfAttention(nn.Module):
             qkv = nn.functional.linear(e, *composed)
         q, k, v = qkv.view(b, n, 3, heads, d // heads).permute(2, 0, 3, 1, 4)
         z = nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=visible[:, None, None, :])
-        return self.attention.out_proj(z.transpose(1, 2).reshape(b, n, d))
+        return z.transpose(1, 2).reshape(b, n, d)
 
 
 class RobotHumanAttention(nn.Module):
@@ -199,15 +211,30 @@ class CrowdNavPPNet(nn.Module):
         other rows (masked as keys here and in the robot-human attention), so the batch is cut
         into ``HUMAN_BUCKETS`` groups of similar counts, each padded only to its own largest
         count: the same values as running all N slots, at a fraction of the arithmetic (the
-        512-wide attention is most of this network's cost)."""
+        512-wide attention is most of this network's cost). Large batches also apply the
+        attention's out-projection and the spatial linear as one map (``composed_out``)."""
         order = detected.argsort()
         buckets = [(idx, int(detected[idx[-1]])) for idx in order.chunk(min(HUMAN_BUCKETS, len(order)))]  # sorted:
-        composed = self.human_attn.composed_qkv(sum(len(idx) * k for idx, k in buckets))  # the largest count last
+        rows = sum(len(idx) * k for idx, k in buckets)  # the largest count last
+        composed, out = self.human_attn.composed_qkv(rows), self.composed_out(rows)
         parts = []
         for idx, k in buckets:
-            z = self.spatial_linear(self.human_attn(humans[idx, :k], visible[idx, :k], composed))
+            z = self.human_attn.attend(humans[idx, :k], visible[idx, :k], composed)
+            if out is None:
+                z = self.spatial_linear(self.human_attn.attention.out_proj(z))
+            else:
+                z = nn.functional.linear(z, *out).relu()
             parts.append(nn.functional.pad(z, (0, 0, 0, humans.shape[1] - k)))
         return torch.cat(parts)[order.argsort()]
+
+    def composed_out(self, rows: int) -> tuple[Tensor, Tensor] | None:
+        """The attention's out-projection and ``spatial_linear``'s Linear (no activation between
+        them) as one map, weight (F, d) and bias (F,), if ``rows`` human rows are to be mapped:
+        composing costs F d^2 once and saves d^2 per row, so it pays above F rows; else None."""
+        if rows <= self.cfg.feature_size:
+            return None
+        out_proj, linear = self.human_attn.attention.out_proj, self.spatial_linear[0]
+        return compose_affine(linear.weight, linear.bias, out_proj.weight, out_proj.bias)
 
     def unroll(self, state: Tensor, memory: Tensor, starts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """M sequences of L observations ``(L, M, D)`` from memory ``(M, H)``, restarting where
