@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import os
 import platform
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from subprocess import CalledProcessError
 from typing import TypeVar
@@ -20,8 +22,13 @@ USER_ERRORS = (ValueError, FileExistsError, FileNotFoundError)
 def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] | None = None,
             interrupted: str | None = None) -> None:
     """Parse ``argv`` (default: the process's) into ``config_class`` and call ``run`` with it.
-    ``interrupted``: what to tell the user on Ctrl-C (how to resume), if the command can resume."""
+    ``interrupted``: what to tell the user on Ctrl-C (how to resume), if the command can resume.
+    A resumable command takes SIGTERM (``kill``, a batch system's time limit) as Ctrl-C, so that
+    its cleanup runs: the main job then records the interrupted stage's wall time."""
     cfg = draccus.parse(config_class=config_class, args=list(sys.argv[1:] if argv is None else argv))
+    previous = None
+    if interrupted is not None and threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         run(cfg)
     except USER_ERRORS as e:
@@ -32,6 +39,13 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
         if interrupted is None:
             raise
         raise SystemExit(f"interrupted: {interrupted}") from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def machine_description() -> str:

@@ -200,7 +200,7 @@ class Pipeline:
 
     def wall_times(self) -> dict[str, float]:
         """Wall time of each stage summed over every invocation that ran it (a resumed stage's
-        time includes the interrupted attempts, except one killed outright)."""
+        time includes the interrupted attempts, Ctrl-C and SIGTERM included; not SIGKILL)."""
         return json.loads(self._times_path.read_text()) if self._times_path.exists() else {}
 
     def _add_wall_time(self, name: str, seconds: float) -> None:

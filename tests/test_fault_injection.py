@@ -4,11 +4,17 @@ The main job's case is in tests/test_report.py (it shares the uninterrupted tiny
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass
+
 import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_crowdnav import fault_injection as fi
+from lerobot_crowdnav.cli import run_cli
 from lerobot_crowdnav.data.collect import main as collect_main
 from lerobot_crowdnav.rl.finetune import main as finetune_main
 
@@ -81,3 +87,42 @@ def test_killed_push_leaves_the_old_or_the_new_repository(work, references, fine
     new, old = ((references["success"], references["all"]) if kind == "dataset" else
                 (reference / "checkpoints/last/pretrained_model", pretrained))
     assert fi.hub_case(work, kind, new, old, point, count) == []
+
+
+SIGTERMED_JOB = """
+import os, signal, time
+from dataclasses import dataclass
+from lerobot_crowdnav.cli import run_cli
+
+@dataclass
+class NoOptions:
+    n: int = 1
+
+def job(cfg):
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(10)
+    finally:
+        print("cleanup ran", flush=True)
+
+run_cli(NoOptions, job, [], "rerun it")
+"""
+
+
+@dataclass
+class _NoOptions:
+    n: int = 1
+
+
+def test_sigterm_stops_a_resumable_command_through_its_cleanup():
+    """``kill`` (SIGTERM) acts as Ctrl-C on a resumable command: its ``finally`` blocks run (the
+    main job records the stage's wall time there) and it exits with how to resume (in a child
+    process: without the handler SIGTERM ends it at once). In process: the handler is put back
+    afterwards, and a command that cannot resume keeps the default."""
+    done = subprocess.run([sys.executable, "-c", SIGTERMED_JOB], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout) == (1, "cleanup ran\n"), done.stderr
+    assert "interrupted: rerun it" in done.stderr
+    before, seen = signal.getsignal(signal.SIGTERM), []
+    run_cli(_NoOptions, lambda cfg: seen.append(signal.getsignal(signal.SIGTERM)), [], "rerun it")
+    run_cli(_NoOptions, lambda cfg: seen.append(signal.getsignal(signal.SIGTERM)), [])
+    assert seen[0] is not before and seen[1] is before and signal.getsignal(signal.SIGTERM) is before
