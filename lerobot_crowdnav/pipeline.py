@@ -39,6 +39,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -410,28 +411,61 @@ class Pipeline:
                         lambda: push_dataset_to_dir(self.dataset_root(task), repo, hub, overwrite=True))
         for h in self.cfg.horizons:
             self._push_policy(task, self.finetuned(task, h, seed), f"pdpo_{short}_h{h}",
-                              self.finetune_dir(task, h, seed, self.ft_stages[-1]),
+                              functools.partial(self.finetune_curve, task, h, seed),
                               [f"collect {short}", f"pretrain {short} H={h} seed={seed}",
                                *(self.finetune_stage_name(task, h, seed, n) for n in self.ft_stages)])
         if self.cfg.crowdnavpp_env_steps:
-            self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}", self.crowdnavpp_dir(task, seed),
+            self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}",
+                              lambda: self.crowdnavpp_dir(task, seed) / "training_curves.png",
                               [f"train crowdnavpp {short} seed={seed}"])
 
-    def _push_policy(self, task: str, ev: Evaluation, name: str, run_dir: Path, stages: list[str]) -> None:
+    def _push_policy(self, task: str, ev: Evaluation, name: str, curve: Callable[[], Path], stages: list[str]) -> None:
         """``<hub>/models/<org>/<name>``: the checkpoint with its card (test metrics, the learning
-        curve of ``run_dir``, the command and the wall time of the ``stages`` that made it)."""
+        curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it)."""
         from .data.hub import push_policy_to_dir
 
         hub, repo = self.root / "hub", f"{self.cfg.hub_org}/{name}"
         metrics = self.eval_dir(task, ev.name) / "metrics.json"
         argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={ev.policy}",
                 f"--repo_id={repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
-        curve = run_dir / "training_curves.png"
         times = self.wall_times()
         recipe = {"command": self.command, "machine": machine_description(),
                   "wall_time_s": {n: times[n] for n in [*stages, f"eval {SHORT[task]} {ev.name}"] if n in times}}
-        self._stage(f"push policy {SHORT[task]} {name}", argv, (hub / "models" / repo).exists() and not self.cfg.rerun_eval,
-                    lambda: push_policy_to_dir(ev.policy, repo, hub, True, metrics, curve if curve.exists() else None, recipe))
+
+        def run() -> None:
+            path = curve()
+            push_policy_to_dir(ev.policy, repo, hub, True, metrics, path if path.exists() else None, recipe)
+
+        self._stage(f"push policy {SHORT[task]} {name}", argv, (hub / "models" / repo).exists() and not self.cfg.rerun_eval, run)
+
+    def finetune_curve(self, task: str, h: int, seed: int) -> Path:
+        """A policy's fine-tuning curve for its card: the trainer's own with one stage, every stage
+        on one axis with two."""
+        from .evaluation.plots import plot_finetune_curves
+
+        last = self.finetune_dir(task, h, seed, self.ft_stages[-1])
+        if len(self.ft_stages) == 1:
+            return last / "training_curves.png"
+        return plot_finetune_curves(self.finetune_records(task, h, seed, "PDPO"), last / "training_curves_stages.png")
+
+    def finetune_records(self, task: str, h: int, seed: int, label: str) -> dict[str, list[dict]]:
+        """The ``progress.jsonl`` records of each fine-tuning stage of one policy, by label, for
+        ``plot_finetune_curves``. Stage 2 is drawn from where it starts in env steps (stage 1's
+        best checkpoint) and after the whole of stage 1 in wall time (the time it cost)."""
+        def read(run: Path) -> list[dict]:
+            return [json.loads(line) for line in (run / "progress.jsonl").read_text().splitlines()]
+
+        first = read(self.finetune_dir(task, h, seed))
+        if 2 not in self.ft_stages:
+            return {label: first}
+        best = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
+        start = json.loads(best.read_text())["env_steps_done"]
+        spent = max(r.get("time/wall_s") or 0.0 for r in first)
+        second = [{**r, "env_steps": r["env_steps"] + start,
+                   "time/wall_s": None if r.get("time/wall_s") is None else r["time/wall_s"] + spent}
+                  for r in read(self.finetune_dir(task, h, seed, 2))]
+        second[0]["time/wall_s"] = spent  # its starting validation
+        return {f"{label}, stage 1": first, f"{label}, stage 2": second}
 
     def figures(self, task: str) -> tuple[Stage | None, list[tuple[str, Path]]]:
         """Storyboard and multimodality of the PDPO policy (none without one), and the learning
@@ -478,13 +512,7 @@ class Pipeline:
             runs = {}
             for h in sorted(self.cfg.horizons, reverse=True):
                 run_label = FINETUNED_LABEL.get(h, f"PDPO (H = {h})").replace(", fine-tuned", "")
-                runs[run_label] = [json.loads(line) for line in (self.finetune_dir(task, h, seed) / "progress.jsonl").read_text().splitlines()]
-                if 2 in self.ft_stages:  # drawn from where it starts: stage 1's best checkpoint
-                    stage2 = self.finetune_dir(task, h, seed, 2)
-                    best = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
-                    start = json.loads(best.read_text())["env_steps_done"]
-                    runs[f"{run_label}, stage 2"] = [{**r, "env_steps": r["env_steps"] + start} for r in
-                                                 (json.loads(line) for line in (stage2 / "progress.jsonl").read_text().splitlines())]
+                runs.update(self.finetune_records(task, h, seed, run_label))
             plot_finetune_curves(runs, curves[0][1])
 
         done = (all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval

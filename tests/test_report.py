@@ -8,10 +8,12 @@ import json
 import shutil
 from pathlib import Path
 
+import draccus
 import pytest
 
 from lerobot_crowdnav import fault_injection as fi
 from lerobot_crowdnav.evaluation.report import Row, boundary_audit, csv_table, markdown_table, parameter_table
+from lerobot_crowdnav.pipeline import MainConfig, Pipeline
 from lerobot_crowdnav.pipeline import main as pipeline_main
 
 
@@ -82,6 +84,8 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
         assert f"| finetune2 {task} H=5 seed=1000 | " in card and "- It continued a fine-tuned checkpoint: " in card
         assert "- Checkpoint: the run's `best`, at " in card
+        stages_curve = root / "finetune" / f"{task}_h5_s1000_stage2" / "training_curves_stages.png"
+        assert (model / "learning_curve.png").read_bytes() == stages_curve.read_bytes()  # both stages on one axis
         # the shipped policy is stage 2's: it started from stage 1's best with its own flags and seeds
         stage2, first = (json.loads((model / name).read_text()) for name in ("finetune_config.json", "source_finetune_config.json"))
         assert stage2["policy"]["path"] == str(root / "finetune" / f"{task}_h5_s1000" / "checkpoints" / "best" / "pretrained_model")
@@ -101,6 +105,15 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert "| CrowdNav++ PPO from scratch per task | 240 env steps |" in report
     assert "| 256 env steps, then 128 more from its best checkpoint (stage 2) |" in report
     assert commands["finetune2 original H=1 seed=1000"][0] == "lerobot-crowdnav-finetune"
+    # stage 2 on stage 1's axes: from stage 1's best in env steps, after all of stage 1 in wall time
+    cfg = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml", args=[f"--output_root={tiny_main}"])
+    records = Pipeline(cfg).finetune_records("BoundedCrowdNav-v0", 5, 1000, "PDPO")
+    first, second = records["PDPO, stage 1"], records["PDPO, stage 2"]
+    best = root / "finetune" / "bounded_h5_s1000" / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
+    start = json.loads(best.read_text())["env_steps_done"]
+    stage2 = (root / "finetune" / "bounded_h5_s1000_stage2" / "progress.jsonl").read_text().splitlines()
+    assert [r["env_steps"] for r in second] == [start + json.loads(line)["env_steps"] for line in stage2]
+    assert second[0]["time/wall_s"] == max(r.get("time/wall_s") or 0 for r in first) < second[-1]["time/wall_s"]
     tables = {p.name: p.read_text() for p in (root / "tables").iterdir()}
 
     # A rerun skips every stage; re-evaluating the saved checkpoints gives identical tables.
