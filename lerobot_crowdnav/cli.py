@@ -25,10 +25,12 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
     ``interrupted``: what to tell the user on Ctrl-C (how to resume), if the command can resume.
     A resumable command takes SIGTERM (``kill``, a batch system's time limit) as Ctrl-C, so that
     its cleanup runs: the main job then records the interrupted stage's wall time."""
+    global _depth
     cfg = draccus.parse(config_class=config_class, args=list(sys.argv[1:] if argv is None else argv))
     previous = None
     if interrupted is not None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _interrupt)
+    _depth += 1
     try:
         run(cfg)
     except USER_ERRORS as e:
@@ -36,12 +38,16 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
     except CalledProcessError as e:
         raise SystemExit(f"error: a stage command failed ({e.returncode}): {' '.join(map(str, e.cmd))}") from None
     except KeyboardInterrupt:
-        if interrupted is None:
+        if interrupted is None or _depth > 1:  # a stage of the main job: the outer command says how to resume
             raise
         raise SystemExit(f"interrupted: {interrupted}") from None
     finally:
+        _depth -= 1
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+_depth = 0  # run_cli calls in progress: the main job runs its stages' commands in-process
 
 
 def _interrupt(signum, frame) -> None:

@@ -126,3 +126,16 @@ def test_sigterm_stops_a_resumable_command_through_its_cleanup():
     run_cli(_NoOptions, lambda cfg: seen.append(signal.getsignal(signal.SIGTERM)), [], "rerun it")
     run_cli(_NoOptions, lambda cfg: seen.append(signal.getsignal(signal.SIGTERM)), [])
     assert seen[0] is not before and seen[1] is before and signal.getsignal(signal.SIGTERM) is before
+
+
+def test_an_interrupted_stage_of_the_main_job_tells_how_to_resume_the_main_job():
+    """The main job runs its stages' commands in-process, each through ``run_cli``: Ctrl-C in a
+    stage gives the outer command's resume message, not the stage's own."""
+    def stage(cfg):
+        raise KeyboardInterrupt
+
+    with pytest.raises(SystemExit, match="interrupted: rerun the main job") as exit_info:
+        run_cli(_NoOptions, lambda cfg: run_cli(_NoOptions, stage, [], "rerun the stage"), [], "rerun the main job")
+    assert "stage" not in str(exit_info.value)
+    with pytest.raises(SystemExit, match="interrupted: rerun the stage"):  # the depth is back to 0
+        run_cli(_NoOptions, stage, [], "rerun the stage")
