@@ -14,8 +14,9 @@ from lerobot_crowdnav.pipeline import SHIPPED_MODELS
 MODELS = sorted(p for p in SHIPPED_MODELS.iterdir() if p.is_dir()) if SHIPPED_MODELS.exists() else []
 
 
-def test_the_two_pdpo_policies_are_shipped():
-    assert {"pdpo_bounded_h5", "pdpo_original_h5"} <= {p.name for p in MODELS}
+def test_the_four_pdpo_policies_are_shipped():
+    """Both benchmarks, with and without the action chunk (issue 13's table)."""
+    assert {f"pdpo_{task}_h{h}" for task in ("bounded", "original") for h in (1, 5)} <= {p.name for p in MODELS}
 
 
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
