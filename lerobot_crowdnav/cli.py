@@ -17,6 +17,7 @@ import draccus
 
 T = TypeVar("T")
 USER_ERRORS = (ValueError, FileExistsError, FileNotFoundError)
+_depth = 0  # run_cli calls in progress: the main job runs its stages' commands in-process
 
 
 def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] | None = None,
@@ -45,9 +46,6 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
         _depth -= 1
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-
-
-_depth = 0  # run_cli calls in progress: the main job runs its stages' commands in-process
 
 
 def _interrupt(signum, frame) -> None:
