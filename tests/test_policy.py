@@ -230,6 +230,14 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
     assert {"config.json", "model.safetensors", "train_config.json", "policy_preprocessor.json",
             "policy_postprocessor.json"} <= names
     assert json.loads((ckpt / "config.json").read_text())["type"] == "pdpo"
+    # Starting from the checkpoint with a dataset: lerobot-train swaps in the dataset's raw
+    # statistics, whose normalized mask would hide the nearest humans; PDPO refuses them.
+    again = subprocess.run(
+        [str(BIN / "lerobot-train"), f"--policy.path={ckpt}", f"--dataset.repo_id={REPO}",
+         f"--dataset.root={dataset_root}", "--policy.push_to_hub=false", f"--output_dir={tmp_path / 'again'}",
+         "--steps=2", "--batch_size=8", "--num_workers=0", "--policy.device=cpu", "--wandb.enable=false"],
+        capture_output=True, text=True, timeout=600)
+    assert again.returncode != 0 and "visibility mask is not 0/1" in again.stderr, again.stderr[-3000:]
     ev = subprocess.run(
         [str(BIN / "lerobot-eval"), f"--policy.path={ckpt}", "--env.type=crowdnav",
          "--env.task=BoundedCrowdNav-v0", "--eval.n_episodes=2", "--eval.batch_size=2",

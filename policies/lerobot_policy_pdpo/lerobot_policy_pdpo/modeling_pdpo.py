@@ -61,7 +61,15 @@ class CrowdEncoder(nn.Module):
         b = state.shape[0]
         w = state[:, :SELF_DIM]  # (B, 9)
         humans = state[:, self.humans].reshape(b, self.n, self.row)
-        visible = state[:, self.mask] > 0.5  # (B, N); the processor leaves the mask as 0/1
+        mask = state[:, self.mask]
+        if torch.any(torch.minimum(mask.abs(), (mask - 1).abs()) > 1e-4):
+            raise ValueError(
+                "observation.state's visibility mask is not 0/1 after the preprocessor: its statistics are "
+                "not PDPO's (visible-only human moments, identity mask: processor_pdpo.crowd_state_stats). "
+                "lerobot-train --policy.path=<PDPO checkpoint> with a --dataset replaces them with the "
+                "dataset's raw statistics; continue a run with --resume=true instead, or train from "
+                "--policy.type=pdpo.")
+        visible = mask > 0.5  # (B, N)
         nobody = ~visible.any(dim=1)  # (B,)
         h = self.human_mlp(humans)  # (B, N, d)
         # Keys of invisible humans are masked; a batch row with nobody visible attends to its
