@@ -114,7 +114,8 @@ def test_visible_humans_only_gives_what_all_slots_give(policy, repeat):
         params = [*net.human_attn.parameters(), *net.spatial_linear.parameters()]
         grads = [torch.autograd.grad(out[1].square().sum(), params) for out in (fast, full)]
     for x, y in zip(*grads, strict=True):
-        torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-4)  # float sums in another order
+        # Float sums in another order: an AVX2-only BLAS left differences up to 1.04e-4 (2 of 786,432).
+        torch.testing.assert_close(x, y, rtol=1e-3, atol=5e-4)
 
 
 @pytest.mark.parametrize("batch", [5, 60])  # 100 human rows: the two maps in turn; 1,200: composed
