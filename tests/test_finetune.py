@@ -16,6 +16,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot_policy_pdpo import PDPOPolicy
 
+from lerobot_crowdnav.data.hub import policy_card
 from lerobot_crowdnav.evaluation.eval import main as eval_main
 from lerobot_crowdnav.rl import finetune as ft
 from lerobot_crowdnav.rl.config import DiffusionPPOConfig
@@ -194,6 +195,8 @@ def test_ddim_fine_tuning_scores_its_own_chains(pretrained, tmp_path):
     run(pretrained, out, "--env_steps=32", "--ppo.ddim_steps=5", "--ppo.ft_denoising_steps=5")
     path = out / "checkpoints" / "last" / "pretrained_model"
     assert PDPOPolicy.from_pretrained(path).config.ddim_steps == 5
+    card = str(policy_card(path, "local/ddim"))  # the card says how the policy samples and what was trained
+    assert "sampled by DDIM in 5" in card and "all 5 denoising steps trained" in card and "DDPM" not in card
     with pytest.raises(ValueError, match="ddim_steps"):
         load_agent(path, DiffusionPPOConfig(ft_denoising_steps=5), seed=3)
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", f"--output_dir={tmp_path / 'eval'}"])

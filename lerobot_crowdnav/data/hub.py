@@ -181,7 +181,9 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
         f"attention pooling over visible humans; latent MLP {config.get('latent_mlp_dims')}.",
         f"- Diffusion actor: denoiser MLP {config.get('denoiser_dims')} (ReLU) with a {config.get('time_embed_dim')}-dim "
         f"sinusoidal timestep embedding; cosine schedule, epsilon prediction, K = {config.get('num_diffusion_steps')} "
-        f"DDPM steps; EMA sampling weights: {config.get('use_ema')} (decay {config.get('ema_decay')}).",
+        + (f"diffusion steps, sampled by DDIM in {config['ddim_steps']} (eta 1 while exploring, 0 when deterministic)"
+           if config.get("ddim_steps") else "DDPM steps")
+        + f"; EMA sampling weights: {config.get('use_ema')} (decay {config.get('ema_decay')}).",
         f"- Value head (critic): MLP {config.get('value_mlp_dims')}, Mish, on "
         + {"latent": "the encoder's latent z (the paper)", "state": "the normalized observation",
            "latent+state": "the encoder's latent z and the normalized observation"}[critic_input] + ".",
@@ -195,12 +197,15 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
     ]
     if finetune:
         ppo = finetune["ppo"]
+        chain = config.get("ddim_steps") or config.get("num_diffusion_steps")  # reverse steps per sample
         lines += [
             f"- Fine-tuning: diffusion PPO (DPPO) for {finetune['env_steps_done']} environment steps in "
             f"`{finetune['env']['task']}` ({finetune['env']['preset']} preset), {finetune['num_envs']} envs x "
-            f"{finetune['world_size']} process(es), seed {finetune['seed']}: the last {ppo['ft_denoising_steps']} of "
-            f"{config.get('num_diffusion_steps')} denoising steps trained (a frozen copy of the pretrained nets runs "
-            f"the others; the model file holds both), actor lr {ppo['actor_lr']}, critic lr {ppo['critic_lr']}, "
+            f"{finetune['world_size']} process(es), seed {finetune['seed']}: "
+            + (f"all {chain} denoising steps trained" if ppo["ft_denoising_steps"] >= chain else
+               f"the last {ppo['ft_denoising_steps']} of {chain} denoising steps trained (a frozen copy of the "
+               "pretrained nets runs the others; the model file holds both)")
+            + f", actor lr {ppo['actor_lr']}, critic lr {ppo['critic_lr']}, "
             f"batch {ppo['batch_size']} env steps x {ppo['ft_denoising_steps']} denoising steps, "
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
             "`finetune_config.json` has every setting.",
