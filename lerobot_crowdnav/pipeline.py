@@ -560,7 +560,7 @@ class Pipeline:
             shown = {method.label for method in methods}
             missing = [name for label, name in self.shipped_names(task).items() if label not in shown] if self.cfg.models else []
             tasks.append(TaskResults(task, TITLE[task], SHORT[task], methods, self.figures_dir(task), figures, curves,
-                                     boundary_audit=not bounded, missing_models=missing))
+                                     bounded=bounded, missing_models=missing))
         c = self.cfg
         budget = None if c.models is not None else Budget(
             c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps, list(c.seeds), c.test_episodes,

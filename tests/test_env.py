@@ -11,6 +11,7 @@ from gymnasium.utils.env_checker import check_env
 import lerobot_crowdnav  # noqa: F401  (registers the envs)
 from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
 from lerobot_crowdnav.sim.engine import (
+    EVENT_NAMES,
     HUMAN_COLLISION,
     RUNNING,
     SUCCESS,
@@ -242,10 +243,11 @@ def test_robot_driven_into_wall_collides_when_disc_touches():
     assert x_last + 0.2 >= 6.0 and events[-2][0] + 0.2 < 6.0
 
 
-def test_path_length_excludes_jump_to_next_episode():
+def test_episode_record_path_length_excludes_jump_to_next_episode_and_goal_is_the_episodes():
     env = CrowdNavVectorEnv(4, task="CrowdNav-v0", robot_policy="straight", compute_intrusion=False)
     obs, _ = env.reset(seed=100)
     positions = [[p] for p in obs[:, :2].astype(np.float64)]
+    goals = obs[:, 3:5].copy()
     done_records = []
     while len(done_records) < 4:
         obs, _, term, trunc, info = env.step(None)
@@ -255,7 +257,8 @@ def test_path_length_excludes_jump_to_next_episode():
                     path = np.sum(np.linalg.norm(np.diff(np.array(positions[b]), axis=0), axis=1))
                     done_records.append((b, path, info["final_info"]["path_length"][b],
                                          np.linalg.norm(obs[b, :2] - positions[b][-1])))
-                positions[b] = [obs[b, :2].astype(np.float64)]
+                np.testing.assert_allclose(info["final_info"]["goal"][b], goals[b], atol=1e-5)  # float32 obs
+                positions[b], goals[b] = [obs[b, :2].astype(np.float64)], obs[b, 3:5]
             else:
                 positions[b].append(obs[b, :2].astype(np.float64))
     for _, from_positions, reported, jump in done_records:
@@ -306,6 +309,13 @@ def test_gymnasium_registration_check_env_and_native_vector_env(task):
             assert np.all(obs[m, 7:9] == 0)
             assert np.all(info["final_info"]["is_success"][m] == (info["final_info"]["event"][m] == SUCCESS))
     assert ended >= 6
+    obs, _ = env.reset(seed=0)
+    while True:  # the single env's episode record: plain Python values, the goal a 2-list
+        obs, _, term, trunc, info = env.step(env.unwrapped.expert_action("straight"))
+        if term or trunc:
+            break
+    assert EVENT_NAMES[info["episode"]["event"]] == info["event"] and isinstance(info["episode"]["length"], int)
+    assert info["episode"]["goal"] == pytest.approx(obs[3:5].tolist(), abs=1e-5)
 
 
 def test_render_rgb_array():

@@ -12,7 +12,7 @@ import draccus
 import pytest
 
 from lerobot_crowdnav import fault_injection as fi
-from lerobot_crowdnav.evaluation.report import Row, boundary_audit, csv_table, markdown_table, parameter_table
+from lerobot_crowdnav.evaluation.report import Row, boundary_audit, csv_table, markdown_table, parameter_table, wall_audit
 from lerobot_crowdnav.pipeline import MainConfig, Pipeline
 from lerobot_crowdnav.pipeline import main as pipeline_main
 
@@ -50,6 +50,27 @@ def test_boundary_audit_counts_successful_episodes_only():
     assert "| PDPO | 0.832 | 0.198 |" in md and "| paper (PDPO) | 0.848 | 0.201 |" in md
 
 
+def test_wall_audit_splits_wall_collisions_by_cause():
+    env = {"arena_size": 6.0, "robot_radius": 0.2}
+    episodes = [{"event": "success", "steps": 40, "goal": [5.9, 0.0]},
+                {"event": "human_collision", "steps": 30, "goal": [0.0, 1.0]},
+                {"event": "wall_collision", "steps": 1, "goal": [1.0, 1.0]},  # starts touching a wall
+                {"event": "wall_collision", "steps": 30, "goal": [-1.0, -5.85]},  # goal in the wall zone
+                {"event": "wall_collision", "steps": 30, "goal": [5.7, 2.0]},  # goal clear of it
+                {"event": "wall_collision", "steps": 2, "goal": [3.0, 5.79]},  # just clear (5.8 is the edge)
+                {"event": "timeout", "steps": 197, "goal": [0.0, 0.0]},
+                {"event": "success", "steps": 40, "goal": [0.0, 0.0]}]
+    old = [{k: v for k, v in e.items() if k != "goal"} for e in episodes]  # records written before goals
+    rows = [Row("PDPO", [{"env": env, "episodes": episodes}]), Row("older", [{"env": env, "episodes": old}])]
+    md, text, facts = wall_audit(rows)
+    assert "| PDPO | 8 | 25.0 | 12.5 | 12.5 | 12.5 | 25.0 | 12.5 |" in md
+    assert "| older | 8 | 25.0 | 12.5 | 12.5 | n/a | n/a | 12.5 |" in md
+    table = list(csv.DictReader(io.StringIO(text)))
+    assert table[0]["wall_other"] == "25" and table[1]["wall_goal_in_zone"] == ""
+    assert facts.startswith("12.5 % of the episodes start with the robot touching a wall") and "at most 87.5 % success" in facts
+    assert "and 25.0 % have their goal inside the wall zone" in facts
+
+
 @pytest.fixture(scope="module")
 def tiny_main(tmp_path_factory) -> Path:
     """The output_root of an uninterrupted tiny main job."""
@@ -62,12 +83,12 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     argv = fi.main_argv(tiny_main)
     root = tiny_main / "tiny"
     report = (root / "report.md").read_text()
-    for section in ("## Budget", "## Bounded CrowdNav", "## original CrowdNav", "### Boundary audit",
+    for section in ("## Budget", "## Bounded CrowdNav", "## original CrowdNav", "### Boundary audit", "### Wall audit (Bounded)",
                     "## Parameter counts", "## Figures", "## Stages", "## Reproduce"):
         assert section in report, section
     methods = ["ORCA (look-ahead)", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
                "PDPO (H = 5, fine-tuned)", "CrowdNav++ (Const. Vel.)"]
-    for name in ("results_bounded.csv", "results_original.csv", "boundary_audit.csv"):
+    for name in ("results_bounded.csv", "results_original.csv", "boundary_audit.csv", "wall_audit.csv"):
         rows = list(csv.DictReader(io.StringIO((root / "tables" / name).read_text())))
         assert [r["method"] for r in rows] == methods, name
     for label in methods:

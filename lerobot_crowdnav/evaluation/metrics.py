@@ -10,6 +10,8 @@
   human's true position 1..5 steps ahead; averaged over episodes (a fraction; tables show %).
 - SD (m): mean over all intrusion steps of all episodes of the closest such centre distance.
 - OOB: share of successful episodes whose robot centre left the workspace at some step.
+
+``outcome`` splits Bounded wall collisions by cause for the report's wall audit.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ class EpisodeRecord:
     intrusion_distance_sum: float  # m, over intrusion steps
     out_of_bounds: bool
     episode_return: float
+    goal: tuple[float, float] | None = None  # the robot's goal (m, world frame); None in older records
 
     @classmethod
     def from_final_info(cls, final_info: dict, b: int) -> EpisodeRecord:
@@ -42,10 +45,37 @@ class EpisodeRecord:
             intrusion_distance_sum=float(final_info["intrusion_distance_sum"][b]),
             out_of_bounds=bool(final_info["out_of_bounds"][b]),
             episode_return=float(final_info["return"][b]),
+            goal=(float(final_info["goal"][b, 0]), float(final_info["goal"][b, 1])) if "goal" in final_info else None,
         )
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+OUTCOMES = ("success", "human_collision", "wall_at_start", "wall_goal_in_zone", "wall_other", "timeout")
+
+
+def outcome(record: dict, arena_size: float, robot_radius: float) -> str | None:
+    """How an episode (a record as in ``metrics.json``) ended, one of ``OUTCOMES``; Bounded wall
+    collisions split by cause:
+
+    - ``wall_at_start``: on the first step, whose check sees the start position: the robot
+      starts touching a wall (CrowdNav++ draws it anywhere in the square), and no policy avoids it;
+    - ``wall_goal_in_zone``: later, with the goal inside the wall zone (where the robot's centre
+      touches a wall, ``max(|gx|, |gy|) >= arena_size - robot_radius``): reaching it (within r)
+      takes a stop in a band narrower than r between the zone and the goal;
+    - ``wall_other``: any other wall collision.
+
+    None for a later wall collision in a record without its goal (written before goals were kept)."""
+    event = record["event"]
+    if event != "wall_collision":
+        return event
+    if record["steps"] == 1:
+        return "wall_at_start"
+    if record.get("goal") is None:
+        return None
+    in_zone = max(abs(record["goal"][0]), abs(record["goal"][1])) >= arena_size - robot_radius
+    return "wall_goal_in_zone" if in_zone else "wall_other"
 
 
 def _mean(values) -> float:

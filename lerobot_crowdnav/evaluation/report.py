@@ -12,11 +12,13 @@ import csv
 import io
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..cli import machine_description
 from ..sim.config import SEED_SPLITS
+from .metrics import OUTCOMES, outcome
 from .parameters import parameter_counts
 
 # column -> (metrics key, scale, digits, header)
@@ -104,6 +106,40 @@ def boundary_audit(rows: list[Row]) -> tuple[str, str]:
     return "\n".join(md), buf.getvalue()
 
 
+WALL_AUDIT_HEADERS = {"success": "SR", "human_collision": "human CR", "wall_at_start": "wall CR, at the start",
+                      "wall_goal_in_zone": "wall CR, goal in the wall zone", "wall_other": "wall CR, other",
+                      "timeout": "TR"}
+
+
+def wall_audit(rows: list[Row]) -> tuple[str, str, str]:
+    """Bounded benchmark: how each method's episodes end, in % of its episodes over all seeds,
+    wall collisions split by cause (``metrics.outcome``; n/a for records without goals). Returns
+    markdown, CSV and a sentence with the shares that no policy changes: episodes starting with
+    the robot touching a wall, episodes whose goal lies in the wall zone."""
+    md = ["| Method | episodes | " + " | ".join(f"{WALL_AUDIT_HEADERS[o]} (%)" for o in OUTCOMES) + " |",
+          "|" + "---|" * (len(OUTCOMES) + 2)]
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["method", "episodes", *OUTCOMES])
+    facts = []
+    for row in rows:
+        episodes = [(e, m["env"]) for m in row.metrics for e in m.get("episodes", [])]
+        kinds = Counter(outcome(e, env["arena_size"], env["robot_radius"]) for e, env in episodes)
+        n = len(episodes)
+        shares = {o: 100.0 * kinds[o] / n if n else math.nan for o in OUTCOMES}
+        if kinds[None]:
+            shares["wall_goal_in_zone"] = shares["wall_other"] = math.nan
+        md.append(f"| {row.label} | {n} | " + " | ".join("n/a" if math.isnan(v) else f"{v:.1f}" for v in shares.values()) + " |")
+        writer.writerow([row.label, n, *("" if math.isnan(v) else f"{v:.6g}" for v in shares.values())])
+        if not facts and n and all(e.get("goal") is not None for e, _ in episodes):
+            in_zone = sum(max(map(abs, e["goal"])) >= env["arena_size"] - env["robot_radius"] for e, env in episodes)
+            facts = [f"{shares['wall_at_start']:.1f} % of the episodes start with the robot touching a wall (a "
+                     f"collision at the first step for every policy: at most {100 - shares['wall_at_start']:.1f} % "
+                     f"success) and {100.0 * in_zone / n:.1f} % have their goal inside the wall zone (reaching it "
+                     "takes a stop in a band narrower than the robot radius)."]
+    return "\n".join(md), buf.getvalue(), " ".join(facts)
+
+
 def parameter_table(counts: dict[str, dict[str, int]]) -> tuple[str, str]:
     """Parameter counts (markdown, CSV) of each learned policy: actor (encoder + denoiser) and
     critic (value head); the paper reports 0.848 M and 0.201 M."""
@@ -187,7 +223,7 @@ class TaskResults:
     figures_dir: Path
     figures: Stage | None
     curves: list[tuple[str, Path]] = field(default_factory=list)
-    boundary_audit: bool = False  # the original benchmark (no walls): audit leaving the workspace
+    bounded: bool = False  # walls: the wall audit; without (the original benchmark): the boundary audit
     missing_models: list[str] = field(default_factory=list)  # shipped models not found (rows left out)
 
 
@@ -287,7 +323,14 @@ def write_report(inputs: ReportInputs) -> Path:
         if t.missing_models:
             lines += ["Not shipped yet (no row): " + ", ".join(f"`{name}`" for name in t.missing_models) + ".", ""]
         lines += ["<details><summary>Provenance of each row</summary>", "", *notes, "", "</details>", ""]
-        if t.boundary_audit:
+        if t.bounded:
+            md, csv_text, facts = wall_audit(rows)
+            (tables / "wall_audit.csv").write_text(csv_text)
+            lines += ["### Wall audit (Bounded)", "",
+                      "How each method's episodes end (% of its test episodes), wall collisions split by cause: "
+                      "at the first step (the robot starts touching a wall), later with the goal inside the wall "
+                      f"zone, other. {facts} CSV: `tables/wall_audit.csv`.", "", md, ""]
+        else:
             md, csv_text = boundary_audit(rows)
             (tables / "boundary_audit.csv").write_text(csv_text)
             lines += ["### Boundary audit (original benchmark)", "",

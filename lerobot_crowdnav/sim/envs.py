@@ -98,8 +98,9 @@ class CrowdNavVectorEnv(VectorEnv):
     ``info["_final_obs"]``) holds the last observation, and ``info["final_info"]`` holds
     per-episode records for those slots: ``is_success``, ``event`` (code into ``EVENT_NAMES``),
     ``seed``, ``length`` (steps), ``return``, ``path_length`` (m), ``intrusion_steps``,
-    ``intrusion_distance_sum`` (m), ``out_of_bounds`` (robot centre ever left the workspace).
-    Every step's ``info`` carries the per-step quantities as arrays (see ``_step_info``).
+    ``intrusion_distance_sum`` (m), ``out_of_bounds`` (robot centre ever left the workspace),
+    ``goal`` ``(B, 2)`` (the robot's goal, m, world frame). Every step's ``info`` carries the
+    per-step quantities as arrays (see ``_step_info``).
 
     ``obs_mode="dict"`` returns ``{"agent_pos": obs}`` (what lerobot's ``preprocess_observation``
     reads as ``observation.state``); ``robot_policy`` may replace the actions by a built-in
@@ -229,6 +230,7 @@ class CrowdNavVectorEnv(VectorEnv):
                 "intrusion_steps": self._ep_intr.copy(),
                 "intrusion_distance_sum": self._ep_intr_sum.copy(),
                 "out_of_bounds": self._ep_oob.copy(),
+                "goal": self.sim.robot_goal.copy(),
                 "_is_success": done.copy(),
             }
             info["_final_info"] = done.copy()
@@ -337,7 +339,7 @@ class CrowdNavEnv(gym.Env):
                 if isinstance(v, np.ndarray) and not k.startswith(("final", "_"))}
         info["event"] = EVENT_NAMES[int(vinfo["event"][0])]
         if "final_info" in vinfo:
-            info["episode"] = {k: v[0].item() for k, v in vinfo["final_info"].items()
+            info["episode"] = {k: v[0].tolist() for k, v in vinfo["final_info"].items()
                                if not k.startswith("_")}
             self._done = True
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
