@@ -214,3 +214,6 @@ def test_baselines_command_writes_tables_and_resumes(tmp_path, capsys):
     assert (tmp_path / "baselines.md").read_text() == text
     with pytest.raises(SystemExit, match="unknown tables"):
         baselines_main(["--only=[nope]", f"--output_dir={tmp_path}"])
+    baselines_main(["--n_episodes=4", "--batch_size=4", "--only=[bounded_paper]", f"--output_dir={tmp_path}"])
+    audit = (tmp_path / "baselines.md").read_text().split("Wall audit")[1]  # a Bounded table's
+    assert "| ORCA current-state, wall-aware | 4 | " in audit and "| straight | 4 | " in audit

@@ -7,7 +7,7 @@ Runs ``lerobot-crowdnav-eval`` for each row of :data:`TABLES` (both ORCA robots,
 wall-aware in Bounded, straight; both variants, both presets, randomized attributes on and off,
 and CrowdNav++'s ORCA-baseline configuration) on the same test seeds, one ``metrics.json`` per
 row under ``<output_dir>/<table>/<row>/``, then writes ``<output_dir>/baselines.md`` (the tables
-with wall times, as in docs/simulator.md). Rerunning skips rows whose metrics exist for the same
+with wall times, as in docs/simulator.md, and each Bounded table's wall audit). Rerunning skips rows whose metrics exist for the same
 episode count, so an interrupted run resumes.
 """
 
@@ -21,6 +21,7 @@ from ..cli import run_cli
 from ..sim.config import CrowdSimConfig
 from .eval import EvalConfig, EvalSettings, OrcaPolicyConfig, StraightPolicyConfig, evaluate
 from .metrics import markdown_header, markdown_row
+from .report import Row, wall_audit
 
 LA, CS = dict(orca_robot="look_ahead"), dict(orca_robot="current_state")
 WALLS = dict(orca_robot_wall_aware=True)
@@ -96,12 +97,17 @@ def baselines(cfg: BaselinesConfig) -> str:
         extra = ["human CR (%)", "wall CR (%)", "TR (%)"] if bounded else []  # where the failures go
         lines = [f"### {title}\n", header + "".join(f" {c} |" for c in extra) + " wall time (s) |",
                  sep + "---|" * (len(extra) + 1)]
+        audited = []
         for name, overrides in rows.items():
             result = run_row(cfg, env, overrides, cfg.output_dir / key / _slug(name))
             cells = [100 * result[k] for k in ("cr_human", "cr_wall", "tr")] if bounded else []
             lines.append(markdown_row(result, bounded, name) + "".join(f" {c:.1f} |" for c in cells)
                          + f" {result['wall_time_s']:.1f} |")
             machines.add(result["machine"])
+            audited.append(Row(name, [result]))
+        if bounded:
+            md, _, facts = wall_audit(audited)
+            lines += ["", f"Wall audit (% of the episodes; `evaluation/metrics.outcome`). {facts}", "", md]
         sections.append("\n".join(lines) + "\n")
     text = "\n".join([f"Baselines on the first {cfg.n_episodes} test seeds (`lerobot-crowdnav-baselines`; "
                       f"wall times on {', '.join(sorted(machines))}).\n", *sections])
