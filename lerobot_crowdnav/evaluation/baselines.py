@@ -7,8 +7,8 @@ Runs ``lerobot-crowdnav-eval`` for each row of :data:`TABLES` (both ORCA robots,
 wall-aware in Bounded, straight; both variants, both presets, randomized attributes on and off,
 and CrowdNav++'s ORCA-baseline configuration) on the same test seeds, one ``metrics.json`` per
 row under ``<output_dir>/<table>/<row>/``, then writes ``<output_dir>/baselines.md`` (the tables
-with wall times, as in docs/simulator.md, and each Bounded table's wall audit). Rerunning skips rows whose metrics exist for the same
-episode count, so an interrupted run resumes.
+with wall times, as in docs/simulator.md, and each Bounded table's wall audit). Rerunning skips
+rows whose metrics exist for the same episode count, so an interrupted run resumes.
 """
 
 from __future__ import annotations

@@ -61,9 +61,8 @@ def outcome(record: dict, arena_size: float, robot_radius: float) -> str | None:
 
     - ``wall_at_start``: on the first step, whose check sees the start position: the robot
       starts touching a wall (CrowdNav++ draws it anywhere in the square), and no policy avoids it;
-    - ``wall_goal_in_zone``: later, with the goal inside the wall zone (where the robot's centre
-      touches a wall, ``max(|gx|, |gy|) >= arena_size - robot_radius``): reaching it (within r)
-      takes a stop in a band narrower than r between the zone and the goal;
+    - ``wall_goal_in_zone``: later, with the goal inside the wall zone (``goal_in_wall_zone``):
+      reaching it (within r) takes a stop in a band narrower than r between the zone and the goal;
     - ``wall_other``: any other wall collision.
 
     None for a later wall collision in a record without its goal (written before goals were kept)."""
@@ -74,8 +73,12 @@ def outcome(record: dict, arena_size: float, robot_radius: float) -> str | None:
         return "wall_at_start"
     if record.get("goal") is None:
         return None
-    in_zone = max(abs(record["goal"][0]), abs(record["goal"][1])) >= arena_size - robot_radius
-    return "wall_goal_in_zone" if in_zone else "wall_other"
+    return "wall_goal_in_zone" if goal_in_wall_zone(record["goal"], arena_size, robot_radius) else "wall_other"
+
+
+def goal_in_wall_zone(goal, arena_size: float, robot_radius: float) -> bool:
+    """Whether a robot centre at ``goal`` (m) would touch a Bounded wall."""
+    return max(abs(goal[0]), abs(goal[1])) >= arena_size - robot_radius
 
 
 def _mean(values) -> float:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..cli import machine_description
 from ..sim.config import SEED_SPLITS
-from .metrics import OUTCOMES, outcome
+from .metrics import OUTCOMES, goal_in_wall_zone, outcome
 from .parameters import parameter_counts
 
 # column -> (metrics key, scale, digits, header)
@@ -132,7 +132,7 @@ def wall_audit(rows: list[Row]) -> tuple[str, str, str]:
         md.append(f"| {row.label} | {n} | " + " | ".join("n/a" if math.isnan(v) else f"{v:.1f}" for v in shares.values()) + " |")
         writer.writerow([row.label, n, *("" if math.isnan(v) else f"{v:.6g}" for v in shares.values())])
         if not facts and n and all(e.get("goal") is not None for e, _ in episodes):
-            in_zone = sum(max(map(abs, e["goal"])) >= env["arena_size"] - env["robot_radius"] for e, env in episodes)
+            in_zone = sum(goal_in_wall_zone(e["goal"], env["arena_size"], env["robot_radius"]) for e, env in episodes)
             facts = [f"{shares['wall_at_start']:.1f} % of the episodes start with the robot touching a wall (a "
                      f"collision at the first step for every policy: at most {100 - shares['wall_at_start']:.1f} % "
                      f"success) and {100.0 * in_zone / n:.1f} % have their goal inside the wall zone (reaching it "
