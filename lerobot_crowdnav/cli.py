@@ -9,7 +9,8 @@ import platform
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from subprocess import CalledProcessError
 from typing import TypeVar
 
@@ -50,6 +51,37 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
 
 def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
+
+
+class Interrupt:
+    """Set by :func:`deferred_interrupt`'s handler: a stop was asked for."""
+
+    requested: bool = False
+
+
+@contextmanager
+def deferred_interrupt(what: str) -> Iterator[Interrupt]:
+    """Ctrl-C or SIGTERM inside the block sets ``requested`` on the yielded flag instead of
+    raising, so that a long loop can stop where its state is whole (a training iteration's end:
+    save, then ``raise KeyboardInterrupt``); a second one raises at once. ``what`` tells the user
+    what the loop does before it stops. Outside the main thread signals are left alone."""
+    flag = Interrupt()
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+
+    def handler(signum, frame) -> None:
+        if flag.requested:
+            raise KeyboardInterrupt
+        flag.requested = True
+        print(f"\n{signal.Signals(signum).name}: {what} (again to stop at once)", file=sys.stderr, flush=True)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield flag
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def machine_description() -> str:

@@ -4,6 +4,7 @@ The main job's case is in tests/test_report.py (it shares the uninterrupted tiny
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from lerobot_crowdnav import fault
 from lerobot_crowdnav import fault_injection as fi
 from lerobot_crowdnav.cli import run_cli
 from lerobot_crowdnav.data.collect import main as collect_main
@@ -78,6 +80,25 @@ def finetuned(work):
 def test_killed_finetune_resumes_bitwise(work, finetuned, point, count):
     pretrained, reference = finetuned
     assert fi.finetune_case(work, pretrained, point, count, reference, 64) == []
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_or_kill_checkpoints_the_iteration_then_resumes_bitwise(work, finetuned, sig):
+    """Ctrl-C or ``kill`` in the middle of an iteration (sent by the process itself after its
+    first rollout): the run finishes that iteration, saves a checkpoint there although none is
+    due (``--save_freq=64``), and exits with how to resume; resumed, it ends where the
+    uninterrupted run does (checkpoints every 32 steps there), bitwise."""
+    pretrained, reference = finetuned
+    out = work / f"finetune_{sig}"
+    argv = [*fi.finetune_argv(pretrained, out, 64), "--save_freq=64"]
+    proc = subprocess.run([sys.executable, "-m", "lerobot_crowdnav.rl.finetune", *argv], capture_output=True, text=True,
+                          cwd=fi.ROOT, timeout=300, env={**os.environ, fault.ENV: f"ppo.collected:1:{sig}", "TQDM_DISABLE": "1"})
+    assert proc.returncode == 1 and "interrupted: rerun the same command with --resume=true" in proc.stderr, proc.stderr[-2000:]
+    assert f"{sig}: finishing this iteration and saving a checkpoint" in proc.stderr
+    assert (out / "checkpoints" / "last").resolve().name == "000000032"
+    fi.check_last_checkpoint(out)
+    finetune_main([*argv, "--resume=true"])
+    assert fi.finetune_differences(out, reference) == []
 
 
 @pytest.mark.parametrize("kind, point, count", [("dataset", "hub.copying", 4),

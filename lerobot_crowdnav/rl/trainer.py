@@ -22,6 +22,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .. import fault
+from ..cli import deferred_interrupt
 from ..sim.config import SEED_SPLITS, CrowdSimConfig
 from ..sim.envs import CrowdNavVectorEnv
 from .checkpoints import Checkpoints, resume_conflicts
@@ -208,32 +210,41 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
     acc.wait_for_everyone()
     bar = tqdm(total=cfg.env_steps, initial=min(progress["env_steps"], cfg.env_steps), unit="env-step",
                desc=label, disable=not main, dynamic_ncols=True)
-    while progress["env_steps"] < cfg.env_steps:
-        t0 = time.perf_counter()
-        ro = collector.collect(agent, cfg.ppo.n_steps)
-        t1 = time.perf_counter()
-        record = {"iteration": progress["iteration"] + 1, "env_steps": progress["env_steps"] + per_iter,
-                  "rollout_digest": ro.digest(), **episode_stats(ro.episodes, acc)}
-        record.update(update(model, agent, ro, cfg.ppo, optimizers, rng, acc,
-                             train_actor=progress["iteration"] >= cfg.ppo.n_critic_warmup_itr))
-        t2 = time.perf_counter()
-        progress["iteration"] += 1
-        progress["env_steps"] += per_iter
-        record.update({"perf/rollout_env_steps_per_s": per_iter / (t1 - t0),
-                       "perf/update_env_steps_per_s": per_iter / (t2 - t1), "perf/env_steps_per_s": per_iter / (t2 - t0)})
-        last = progress["env_steps"] >= cfg.env_steps
-        if main and (last or crossed(progress["env_steps"], per_iter, cfg.val.freq)):
-            record.update(validate_and_keep_best())
-        progress["wall_s"] += time.perf_counter() - t0
-        record["time/wall_s"] = progress["wall_s"]
-        log.log(record)
-        bar.update(min(per_iter, cfg.env_steps - bar.n))
-        if main:
-            bar.set_postfix({k.split("/")[-1]: f"{record[k]:.3f}" for k in ("train/success_rate", "val/success_rate") if k in record})
-        acc.wait_for_everyone()
-        if last or crossed(progress["env_steps"], per_iter, cfg.save_freq):
-            ckpts.save(progress["env_steps"], save_policy,
-                       {**{f"{name}_opt": opt.state_dict() for name, opt in optimizers.items()}, **progress}, save_rank_state)
+    with deferred_interrupt("finishing this iteration and saving a checkpoint") as interrupt:
+        while progress["env_steps"] < cfg.env_steps:
+            t0 = time.perf_counter()
+            ro = collector.collect(agent, cfg.ppo.n_steps)
+            fault.point("ppo.collected")
+            t1 = time.perf_counter()
+            record = {"iteration": progress["iteration"] + 1, "env_steps": progress["env_steps"] + per_iter,
+                      "rollout_digest": ro.digest(), **episode_stats(ro.episodes, acc)}
+            record.update(update(model, agent, ro, cfg.ppo, optimizers, rng, acc,
+                                 train_actor=progress["iteration"] >= cfg.ppo.n_critic_warmup_itr))
+            t2 = time.perf_counter()
+            progress["iteration"] += 1
+            progress["env_steps"] += per_iter
+            record.update({"perf/rollout_env_steps_per_s": per_iter / (t1 - t0),
+                           "perf/update_env_steps_per_s": per_iter / (t2 - t1), "perf/env_steps_per_s": per_iter / (t2 - t0)})
+            last = progress["env_steps"] >= cfg.env_steps
+            if main and (last or crossed(progress["env_steps"], per_iter, cfg.val.freq)):
+                record.update(validate_and_keep_best())
+            progress["wall_s"] += time.perf_counter() - t0
+            record["time/wall_s"] = progress["wall_s"]
+            log.log(record)
+            bar.update(min(per_iter, cfg.env_steps - bar.n))
+            if main:
+                bar.set_postfix({k.split("/")[-1]: f"{record[k]:.3f}" for k in ("train/success_rate", "val/success_rate") if k in record})
+            stop = interrupt.requested and not last  # Ctrl-C or SIGTERM in any process: all stop here
+            if world > 1:
+                stop = bool(acc.reduce(torch.tensor([float(stop)], device=acc.device), reduction="sum").item())
+            acc.wait_for_everyone()
+            if last or stop or crossed(progress["env_steps"], per_iter, cfg.save_freq):
+                ckpts.save(progress["env_steps"], save_policy,
+                           {**{f"{name}_opt": opt.state_dict() for name, opt in optimizers.items()}, **progress}, save_rank_state)
+            if stop:
+                bar.close()
+                log.close()
+                raise KeyboardInterrupt
     bar.close()
     log.close()
     if main:
