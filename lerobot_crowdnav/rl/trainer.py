@@ -210,8 +210,9 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
     acc.wait_for_everyone()
     bar = tqdm(total=cfg.env_steps, initial=min(progress["env_steps"], cfg.env_steps), unit="env-step",
                desc=label, disable=not main, dynamic_ncols=True)
+    stop = False  # Ctrl-C or SIGTERM: stop after this iteration's checkpoint
     with deferred_interrupt("finishing this iteration and saving a checkpoint") as interrupt:
-        while progress["env_steps"] < cfg.env_steps:
+        while not stop and progress["env_steps"] < cfg.env_steps:
             t0 = time.perf_counter()
             ro = collector.collect(agent, cfg.ppo.n_steps)
             fault.point("ppo.collected")
@@ -241,12 +242,10 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
             if last or stop or crossed(progress["env_steps"], per_iter, cfg.save_freq):
                 ckpts.save(progress["env_steps"], save_policy,
                            {**{f"{name}_opt": opt.state_dict() for name, opt in optimizers.items()}, **progress}, save_rank_state)
-            if stop:
-                bar.close()
-                log.close()
-                raise KeyboardInterrupt
     bar.close()
     log.close()
+    if stop:
+        raise KeyboardInterrupt
     if main:
         procs = "1 process" if world == 1 else f"{world} processes ({acc.distributed_type.value})"
         print(f"\n{done} {progress['env_steps']} env steps on {procs}; "
