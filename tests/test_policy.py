@@ -150,6 +150,36 @@ def test_noise_draws_share_one_encoding_and_respect_padding(dataset_root):
         make_config(noise_draws=0)
 
 
+def test_velocity_dropout_hides_the_robot_velocity_from_the_encoder():
+    """velocity_dropout = 1: the latent does not depend on entries 7-8 (the previous action), in
+    training and acting alike; 0 < p < 1 drops them for about a fraction p of the training
+    samples and never when acting; 0 (the paper) always reads them. The other 7 robot floats
+    are never touched."""
+    torch.manual_seed(0)
+    b = 4000
+    state = torch.randn(b, 269)
+    state[:, 249:] = (torch.rand(b, 20) < 0.5).float()
+    other = state.clone()
+    other[:, 7:9] += 3.0
+    moved = state.clone()
+    moved[:, 3:5] += 3.0  # the goal
+    for p in (0.0, 0.3, 1.0):
+        enc = PDPOPolicy(make_config(velocity_dropout=p, dropout=0.0)).actor.encoder
+        for training in (True, False):
+            enc.train(training)
+            torch.manual_seed(1)
+            a = enc(state)
+            torch.manual_seed(1)
+            changed = (enc(other) - a).abs().amax(dim=1) > 1e-6
+            torch.manual_seed(1)
+            assert ((enc(moved) - a).abs().amax(dim=1) > 1e-6).all()  # the goal always counts
+            dropped = 1 - changed.float().mean().item()
+            expected = p if (training or p == 1.0) else 0.0
+            assert abs(dropped - expected) < 0.03, (p, training, dropped)
+    with pytest.raises(ValueError, match="velocity_dropout"):
+        make_config(velocity_dropout=1.5)
+
+
 def test_sentinel_rows_do_not_distort_state_statistics():
     cfg = make_config()
     rng = np.random.default_rng(0)

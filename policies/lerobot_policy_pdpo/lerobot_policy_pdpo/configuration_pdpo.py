@@ -49,6 +49,12 @@ class PDPOConfig(PreTrainedConfig):
     pool_mlp_dims: tuple[int, ...] = (128,)
     # MLP_latent on [w, pooled edges] -> z (last entry = latent size).
     latent_mlp_dims: tuple[int, ...] = (512, 256)
+    # Robot-velocity dropout against the copycat shortcut: the velocity entries (7-8) are the
+    # previous executed action, and cloning from them copies it instead of reacting to the crowd.
+    # Each training sample has them replaced by 0 (the dataset's mean velocity, after
+    # normalization) with this probability; at 1.0 the encoder never reads them, in training and
+    # acting alike. 0: the paper's encoder (docs/recipes.md measures the settings).
+    velocity_dropout: float = 0.0
 
     # -- diffusion actor (DPPO DiffusionMLP) ---------------------------------------------------
     # Denoiser MLP on [x_k flattened, z, psi(k)], ReLU (paper: [512, 256, 256]).
@@ -112,6 +118,8 @@ class PDPOConfig(PreTrainedConfig):
         if not 0 <= self.ft_denoising_steps <= self.sampling_steps:
             raise ValueError(f"ft_denoising_steps must be in [0, {self.sampling_steps}] (the sampling steps), "
                              f"got {self.ft_denoising_steps}")
+        if not 0 <= self.velocity_dropout <= 1:
+            raise ValueError(f"velocity_dropout must be in [0, 1], got {self.velocity_dropout}")
         if not 0 < self.ema_decay < 1:
             raise ValueError("ema_decay must be in (0, 1)")
 

@@ -26,7 +26,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_crowdnav.data.fast_loader import install as install_fast_loader
-from lerobot_crowdnav.layout import SELF_DIM, human_row_dim, humans_slice, mask_slice
+from lerobot_crowdnav.layout import ROBOT_DIM, SELF_DIM, human_row_dim, humans_slice, mask_slice
 
 from .configuration_pdpo import PDPOConfig
 
@@ -48,6 +48,7 @@ class CrowdEncoder(nn.Module):
         super().__init__()
         self.n, self.row = cfg.num_humans, human_row_dim(cfg.prediction_steps)
         self.humans, self.mask = humans_slice(cfg.num_humans, cfg.prediction_steps), mask_slice(cfg.num_humans, cfg.prediction_steps)
+        self.velocity_dropout = cfg.velocity_dropout
         d = cfg.human_mlp_dims[-1]
         self.human_mlp = mlp([self.row, *cfg.human_mlp_dims], last_activation=True)
         self.attention = nn.MultiheadAttention(d, cfg.attention_heads, batch_first=True)
@@ -59,7 +60,7 @@ class CrowdEncoder(nn.Module):
 
     def forward(self, state: Tensor) -> Tensor:
         b = state.shape[0]
-        w = state[:, :SELF_DIM]  # (B, 9)
+        w = self._robot_input(state[:, :SELF_DIM])  # (B, 9)
         humans = state[:, self.humans].reshape(b, self.n, self.row)
         mask = state[:, self.mask]
         if torch.any(torch.minimum(mask.abs(), (mask - 1).abs()) > 1e-4):
@@ -84,6 +85,19 @@ class CrowdEncoder(nn.Module):
         alpha = torch.softmax(scores, dim=1) * visible  # zero weights when nobody is visible
         pooled = (alpha[..., None] * e).sum(dim=1)  # (B, E)
         return self.latent_mlp(torch.cat([w, pooled], dim=-1))  # (B, Z)
+
+    def _robot_input(self, w: Tensor) -> Tensor:
+        """The robot's 9 floats with the velocity zeroed (its normalized mean) per
+        ``velocity_dropout``: always at 1.0, per sample in training mode otherwise."""
+        p = self.velocity_dropout
+        if p == 0 or (p < 1 and not self.training):
+            return w
+        keep = torch.ones_like(w)
+        if p == 1:
+            keep[:, ROBOT_DIM:] = 0
+        else:
+            keep[:, ROBOT_DIM:] = (torch.rand(w.shape[0], 1, device=w.device) >= p).to(w.dtype)
+        return w * keep
 
 
 class SinusoidalEmbedding(nn.Module):
