@@ -83,7 +83,7 @@ class PretrainedPolicyConfig(RobotPolicyConfig):
 class EvalSettings:
     # Number of episodes: the first n seeds of the split.
     n_episodes: int = 500
-    # Seed split: test (500 seeds, every reported table), val (100, checkpoint selection), train.
+    # Seed split: test (500 seeds, every reported table), val (1,000, checkpoint and recipe selection), train.
     split: str = "test"
     # Environments stepped together in one batch (at most n_episodes).
     batch_size: int = 256

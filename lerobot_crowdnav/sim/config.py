@@ -259,8 +259,8 @@ class CrowdSimConfig:
 
 # Episode seeds. One seed = one episode, bitwise identical whatever the batch size or slot.
 SEED_SPLITS: dict[str, tuple[int, int]] = {
-    "train": (0, 1_000_000_000),  # [0, 1e9): demonstrations and RL rollouts
-    "val": (1_000_000_000, 1_000_000_100),  # 100 episodes: checkpoint selection
+    "train": (0, 1_000_000_000),  # [0, 1e9): demonstrations, RL rollouts (from 5e8), DAgger learners (from 8e8)
+    "val": (1_000_000_000, 1_000_001_000),  # checkpoint and recipe selection (up to 1,000 episodes)
     "test": (2_000_000_000, 2_000_000_500),  # 500 episodes: every reported table
 }
 

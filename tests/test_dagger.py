@@ -1,0 +1,93 @@
+"""DAgger rounds: the demonstrator's chunk from a learner's state, the simulator left as it was,
+and a round aggregated into the LeRobotDataset that lerobot reads chunk by chunk."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from conftest import make_tiny_checkpoint
+from lerobot_crowdnav.data.dagger import DAGGER_SEED_BASE, ROUND_SEEDS, main as dagger_main, teacher_snippets
+from lerobot_crowdnav.data.dataset import COLLECTION_FILE
+from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.engine import HUMAN_COLLISION, RUNNING, SUCCESS, WALL_COLLISION, CrowdSim
+
+
+def test_teacher_snippets_are_the_demonstrators_chunk_from_the_learners_state():
+    cfg = CrowdSimConfig(task="BoundedCrowdNav-v0", preset="paper").resolve()
+    sim = CrowdSim(cfg, 32)
+    sim.reset(np.arange(32) + 123)
+    for _ in range(3):  # a learner that walks 45 degrees off its goal: its velocity is its own
+        a = sim.straight_actions() @ np.array([[0.7, 0.7], [-0.7, 0.7]])
+        sim.step(a)
+    learner_velocity = sim.clip_actions(a)
+    before = sim.state_dict()
+    horizon = 24
+    snippets = {s["seed"]: s for s in teacher_snippets(sim, np.arange(32), horizon)}
+    for key, value in sim.state_dict().items():  # the learner goes on from where it was
+        np.testing.assert_array_equal(value, before[key], err_msg=key)
+
+    ref = CrowdSim(cfg, 32)  # the demonstrator driving from the same states
+    ref.load_state_dict(before)
+    obs, act, event, length = [], [], np.full(32, RUNNING), np.zeros(32, int)
+    for _ in range(horizon):
+        live = event == RUNNING
+        obs.append(ref.obs.copy())
+        act.append(ref.clip_actions(ref.orca_actions()))
+        res = ref.step(act[-1])
+        length += live
+        event = np.where(live, res.event, event)
+    collided = np.isin(event, [HUMAN_COLLISION, WALL_COLLISION])
+    assert collided.any() and (~collided).any() and (event == SUCCESS).sum() + (event == RUNNING).sum() == (~collided).sum()
+    for b in range(32):
+        seed = int(before["seeds"][b])
+        assert (seed in snippets) == (not collided[b])  # the demonstrator's collisions are left out
+        if seed in snippets:
+            s = snippets[seed]
+            n = length[b]
+            np.testing.assert_array_equal(s["obs"], np.stack(obs)[:n, b])
+            np.testing.assert_allclose(s["action"], np.stack(act)[:n, b])
+            assert s["success"] == (event[b] == SUCCESS)
+            np.testing.assert_allclose(s["obs"][0, 7:9], learner_velocity[b], rtol=1e-6)  # the learner's state
+
+
+def test_a_round_aggregates_labelled_chunks_that_lerobot_reads(tmp_path):
+    policy = make_tiny_checkpoint(tmp_path)  # untrained PDPO, H = 5, and its 8-episode dataset at tmp_path/ds
+    root = tmp_path / "ds"
+    info = json.loads((root / "meta/info.json").read_text())
+    n_demos, demo_frames = info["total_episodes"], info["total_frames"]
+    argv = [f"--policy_path={policy}", f"--root={root}", "--round=2", "--episodes=4", "--every=7", "--batch_size=4"]
+    dagger_main(argv)
+    record = json.loads((root / COLLECTION_FILE).read_text())["dagger"][0]
+
+    ds = LeRobotDataset(f"local/{tmp_path.name}", root=root, delta_timestamps={"action": [k / 4 for k in range(5)]})
+    assert ds.meta.total_episodes == n_demos + record["snippets"] and record["snippets"] > 0
+    lo = DAGGER_SEED_BASE + 2 * ROUND_SEEDS
+    episodes = ds.meta.episodes
+    for e in range(n_demos, ds.meta.total_episodes):
+        row = episodes[e]
+        assert lo <= row["seed"] < lo + 4 and 1 <= row["length"] <= 5
+        item = ds[row["dataset_from_index"]]
+        n = row["length"]
+        frames = ds.hf_dataset.select(range(row["dataset_from_index"], row["dataset_to_index"]))
+        np.testing.assert_array_equal(item["action"][:n].numpy(), np.stack(frames["action"]))
+        assert not item["action_is_pad"][:n].any() and item["action_is_pad"][n:].all()
+    assert ds.meta.total_frames == demo_frames + record["frames"]
+    assert "## DAgger rounds" in (root / "README.md").read_text()
+
+    # A rerun skips the round; a round committed but not recorded (killed in between) is recorded, not redone.
+    dagger_main(argv)
+    collection = json.loads((root / COLLECTION_FILE).read_text())
+    assert len(collection["dagger"]) == 1
+    del collection["dagger"]
+    (root / COLLECTION_FILE).write_text(json.dumps(collection))
+    dagger_main(argv)
+    again = json.loads((root / COLLECTION_FILE).read_text())["dagger"]
+    assert [r["first_episode_index"] for r in again] == [n_demos]
+    assert again[0]["snippets"] == record["snippets"]
+    assert json.loads((root / "meta/info.json").read_text())["total_episodes"] == n_demos + record["snippets"]
+    with pytest.raises(SystemExit, match="round"):
+        dagger_main([*argv[:2], "--round=0"])

@@ -1,0 +1,97 @@
+"""The copycat probe (scripts/probe_sensitivity.py): policies whose answers are known exactly
+(one copies its velocity, one heads for the goal) must score as such, and the teacher sensibly."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.engine import CrowdSim
+
+spec = importlib.util.spec_from_file_location("probe_sensitivity", Path(__file__).parents[1] / "scripts/probe_sensitivity.py")
+probe_mod = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # dataclasses look it up
+spec.loader.exec_module(probe_mod)
+
+CONFIG = CrowdSimConfig(task="BoundedCrowdNav-v0", compute_intrusion=False).resolve()
+
+
+@pytest.fixture(scope="module")
+def states():
+    return probe_mod.collect_states(CONFIG, episodes=4, every=10)
+
+
+def copycat(sim):
+    return sim.obs[:, 7:9].astype(np.float64)
+
+
+def goal_seeker(sim):
+    d = (sim.obs[:, 3:5] - sim.obs[:, 0:2]).astype(np.float64)
+    return d / np.linalg.norm(d, axis=1, keepdims=True) * sim.obs[:, 5:6]
+
+
+def test_states_are_moving_teacher_states_with_humans(states):
+    assert len(states["seeds"]) >= 10
+    assert np.all(np.linalg.norm(states["robot_vel"], axis=1) > 0.1)
+    assert np.all(states["visible"].any(axis=1))
+    assert set(states["seeds"]) <= set(range(1_000_000_000, 1_000_000_004))
+
+
+def test_copycat_follows_velocity_and_ignores_goal(states):
+    r = probe_mod.probe(states, CONFIG, copycat, batch_size=5)
+    assert r["velocity_follow"] == pytest.approx(1.0, abs=1e-6)
+    assert r["goal_turn_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert r["r2_action_is_velocity"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_goal_seeker_ignores_velocity_and_turns_with_goal(states):
+    r = probe_mod.probe(states, CONFIG, goal_seeker)
+    assert r["velocity_follow"] == pytest.approx(0.0, abs=1e-6)
+    assert r["goal_turn_deg"] == pytest.approx(30.0, abs=1e-4)
+    assert r["r2_action_is_velocity"] < 0.99
+
+
+def test_teacher_scores_are_sensible(states):
+    r = probe_mod.probe(states, CONFIG, probe_mod.teacher_act)
+    assert r["states"] >= 10
+    for value in (r["velocity_follow"], r["goal_turn_deg"] / 30.0, r["r2_action_is_velocity"]):
+        assert math.isfinite(value) and -0.5 <= value <= 1.5
+
+
+def test_observe_changes_only_the_perturbed_entries_and_not_the_teacher(states):
+    """The probe's unperturbed state is the teacher's: observing it again leaves the look-ahead
+    robot's action as executed, and a perturbation moves only its own observation entries."""
+    sim = CrowdSim(CONFIG, len(states["seeds"]))
+    sim.load_state_dict(states)
+    executed = probe_mod.teacher_act(sim)
+    sim.load_state_dict(states)
+    base = sim.observe().copy()
+    np.testing.assert_array_equal(probe_mod.teacher_act(sim), executed)
+    for perturb, entries in ((probe_mod.turn_velocity(20.0), [7, 8]), (probe_mod.turn_goal(30.0), [3, 4])):
+        sim.load_state_dict(states)
+        perturb(sim)
+        changed = np.flatnonzero(np.any(sim.observe() != base, axis=0))
+        assert changed.tolist() == entries
+
+
+def test_turn_degrees_wraps_to_half_open_interval():
+    a = np.array([[1.0, 0.0], [-1.0, 1e-12], [-1.0, -1e-12]])
+    b = np.array([[-1.0, 0.0], [-1.0, -1e-12], [-1.0, 1e-12]])
+    np.testing.assert_allclose(probe_mod.turn_degrees(a, b), [180.0, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(probe_mod.turn_degrees(a[:1], probe_mod.rotate(a[:1], -170.0)), [-170.0])
+
+
+def test_cli_merges_repeated_paths_and_reports_bad_input_in_one_line():
+    assert probe_mod.merge_paths(["--policy.path=orca", "--policy.path=[a,b]", "--every=3"]) == \
+        ["--every=3", "--policy.path=[orca,a,b]"]
+    with pytest.raises(SystemExit, match="^error: --episodes must be in"):
+        probe_mod.main(["--episodes=0"])
+    with pytest.raises(SystemExit, match="^error: .*every"):
+        probe_mod.main(["--every=x"])
+    with pytest.raises(SystemExit, match="^error: --policy.path=nowhere: no config.json"):
+        probe_mod.main(["--policy.path=nowhere", "--episodes=1"])
