@@ -95,6 +95,13 @@ class MainConfig:
     ft_batch_size: int = 500
     ft_val_episodes: int = 20
     ft_val_freq: int = 4096
+    # DAgger rounds in pretraining (lerobot_crowdnav.data.dagger; [] = plain behaviour cloning, the
+    # paper): at each of these lerobot-train steps (below the BC budget) the policy trained so far
+    # drives bc_dagger_episodes learner episodes, the ORCA demonstrator labels every state it
+    # visits with its chunk from there, and lerobot-train resumes on the aggregate (each policy
+    # aggregates into its own copy of the demonstrations, datasets/<task>_h<H>_s<seed>_dagger).
+    bc_dagger_at: list[int] = field(default_factory=list)
+    bc_dagger_episodes: int = 500
     # Further flags of every lerobot-train run (e.g. ["--policy.noise_draws=4"]) and of every
     # lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]): a recipe's own settings.
     bc_args: list[str] = field(default_factory=list)
@@ -138,7 +145,9 @@ class MainConfig:
             raise ValueError("nothing to train: give --horizons (PDPO) and/or --crowdnavpp_env_steps (CrowdNav++)")
         if not self.seeds:
             raise ValueError("--seeds needs at least one seed")
-        for name in ("demos", "bc_steps", "bc_batch_size", "ft_env_steps", "ft_num_envs", "ft_n_steps", "ft_batch_size",
+        if any(step < 1 for step in self.bc_dagger_at) or len(set(self.bc_dagger_at)) != len(self.bc_dagger_at):
+            raise ValueError(f"--bc_dagger_at must be distinct positive lerobot-train steps, got {self.bc_dagger_at}")
+        for name in ("demos", "bc_steps", "bc_batch_size", "bc_dagger_episodes", "ft_env_steps", "ft_num_envs", "ft_n_steps", "ft_batch_size",
                      "ft_val_episodes", "test_episodes", "figure_samples"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
@@ -254,31 +263,61 @@ class Pipeline:
         frames = json.loads((self.dataset_root(task) / "meta" / "info.json").read_text())["total_frames"]
         return math.ceil(self.cfg.bc_epochs * frames / self.cfg.bc_batch_size)
 
+    def pretrain_dataset(self, task: str, h: int, seed: int) -> Path:
+        """What the policy is cloned from: the demonstrations, or with DAgger its own copy of them
+        that the rounds aggregate into."""
+        if not self.cfg.bc_dagger_at:
+            return self.dataset_root(task)
+        return self.root / "datasets" / f"{SHORT[task]}_h{h}_s{seed}_dagger"
+
     def pretrain(self, task: str, h: int, seed: int) -> Stage:
+        """lerobot-train on the demonstrations; with DAgger, in segments that end at the rounds."""
+        from .data.dagger import main as dagger_main
+
         out = self.train_dir(task, h, seed)
         steps = self.bc_steps(task)
         last = out / "checkpoints" / "last"
         step_file = last / "training_state" / "training_step.json"
-        done = step_file.exists() and json.loads(step_file.read_text())["step"] >= steps
+
+        def step_done() -> int:
+            return json.loads(step_file.read_text())["step"] if step_file.exists() else 0
+
+        data = self.pretrain_dataset(task, h, seed)
+        segments = [*sorted(s for s in self.cfg.bc_dagger_at if s < steps), steps]
         argv = ["lerobot-train", "--policy.type=pdpo", f"--policy.horizon={h}", f"--dataset.repo_id={self.repo_id(task)}",
-                f"--dataset.root={self.dataset_root(task)}", "--policy.push_to_hub=false", f"--output_dir={out}",
-                f"--steps={steps}", f"--batch_size={self.cfg.bc_batch_size}", f"--save_freq={max(1, steps // 4)}",
+                f"--dataset.root={data}", "--policy.push_to_hub=false", f"--output_dir={out}",
+                f"--steps={segments[0]}", f"--batch_size={self.cfg.bc_batch_size}", f"--save_freq={max(1, steps // 4)}",
                 f"--log_freq={max(1, min(200, steps // 10))}", f"--num_workers={self.cfg.bc_num_workers}",
                 f"--seed={seed}", "--wandb.enable=false", f"--job_name={out.name}", *self.cfg.bc_args]
         if self.device:
             argv.append(f"--policy.device={self.device}")
 
-        def run() -> None:
+        def train_to(target: int) -> None:
             cmd = list(argv)
-            if last.exists():  # interrupted: lerobot-train resumes from its last checkpoint
+            if last.exists():  # a later segment, or interrupted: lerobot-train resumes from its last checkpoint
+                if step_done() >= target:
+                    return
                 cmd = ["lerobot-train", f"--config_path={last / 'pretrained_model' / 'train_config.json'}", "--resume=true",
-                       f"--steps={steps}"]
+                       f"--steps={target}"]
             elif out.exists():
                 shutil.rmtree(out)  # started but never checkpointed: lerobot-train refuses an existing dir
             cmd[0] = str(Path(sys.executable).parent / "lerobot-train")
             subprocess.run(cmd, check=True)
 
-        return self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, done, run)
+        def run() -> None:
+            if data != self.dataset_root(task) and not data.exists():
+                staging = data.with_name(f".{data.name}.tmp")
+                shutil.rmtree(staging, ignore_errors=True)
+                shutil.copytree(self.dataset_root(task), staging)
+                staging.replace(data)
+            for r, target in enumerate(segments):
+                if r:  # a round is skipped once the dataset holds it
+                    dagger_main([f"--policy_path={last / 'pretrained_model'}", f"--root={data}", f"--round={r}",
+                                 f"--episodes={self.cfg.bc_dagger_episodes}", f"--seed={seed}",
+                                 *([f"--device={self.device}"] if self.device else [])])
+                train_to(target)
+
+        return self._stage(f"pretrain {SHORT[task]} H={h} seed={seed}", argv, step_done() >= steps, run)
 
     def finetune(self, task: str, h: int, seed: int, stage: int = 1) -> Stage:
         """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``best`` (stage 2)."""
