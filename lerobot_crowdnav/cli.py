@@ -15,6 +15,7 @@ from subprocess import CalledProcessError
 from typing import TypeVar
 
 import draccus
+from draccus.utils import DecodingError
 
 T = TypeVar("T")
 USER_ERRORS = (ValueError, FileExistsError, FileNotFoundError)
@@ -28,7 +29,10 @@ def run_cli(config_class: type[T], run: Callable[[T], object], argv: list[str] |
     A resumable command takes SIGTERM (``kill``, a batch system's time limit) as Ctrl-C, so that
     its cleanup runs: the main job then records the interrupted stage's wall time."""
     global _depth
-    cfg = draccus.parse(config_class=config_class, args=list(sys.argv[1:] if argv is None else argv))
+    try:
+        cfg = draccus.parse(config_class=config_class, args=list(sys.argv[1:] if argv is None else argv))
+    except DecodingError as e:  # a value of the wrong type: one line, not draccus' chained tracebacks
+        raise SystemExit(f"error: {e}") from None
     previous = None
     if interrupted is not None and threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _interrupt)

@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from draccus.utils import DecodingError
 from tqdm import tqdm
 
 from lerobot_crowdnav.cli import machine_description, run_cli
@@ -243,10 +242,7 @@ def merge_paths(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    try:
-        run_cli(ProbeConfig, run, merge_paths(sys.argv[1:] if argv is None else argv))
-    except DecodingError as e:
-        raise SystemExit(f"error: {e}") from None
+    run_cli(ProbeConfig, run, merge_paths(sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

@@ -116,6 +116,7 @@ def test_existing_output_dir_is_refused_then_overwritten(tmp_path, capsys):
     ("--eval.split=bogus", "--eval.split must be one of"),
     ("--eval.n_episodes=0", "--eval.n_episodes must be in [1, 500]"),
     ("--eval.n_episodes=501", "--eval.n_episodes must be in [1, 500]"),
+    ("--eval.n_episodes=abc", "`eval.n_episodes`: Couldn't parse 'abc' into an int"),
     ("--eval.batch_size=0", "--eval.batch_size must be >= 1"),
     ("--eval.n_videos=-1", "--eval.n_videos must be >= 0"),
     ("--env.task=Nope-v0", "unknown task 'Nope-v0'"),
