@@ -4,6 +4,7 @@ and a round aggregated into the LeRobotDataset that lerobot reads chunk by chunk
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,6 +113,7 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert json.loads((last / "training_state/training_step.json").read_text())["step"] == 4
     train_cfg = json.loads((last / "pretrained_model/train_config.json").read_text())
     assert train_cfg["dataset"]["root"] == str(data) and train_cfg["policy"]["velocity_dropout"] == 0.5
+    assert Path(rounds[0]["policy"]).parent.name.lstrip("0") == "2"  # the round's learner: the step-2 checkpoint
     assert job.pretrain(task, 1, 1000).wall_time_s is None  # complete: skipped
     with pytest.raises(ValueError, match="bc_dagger_at"):
         MainConfig(models=None, bc_dagger_at=[0]).validate()

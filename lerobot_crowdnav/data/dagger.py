@@ -170,7 +170,7 @@ def dagger(cfg: DaggerConfig) -> dict:
         policy = LearnedPolicy(Path(cfg.policy_path), cfg.device, sim_cfg.obs_dim, seed=cfg.seed)
         snippets, events = learner_round(sim, policy, list(range(first_seed, first_seed + cfg.episodes)), cfg.every, horizon)
         writer.append(snippets)
-    record = {"round": cfg.round, "policy": str(cfg.policy_path), "learner_episodes": cfg.episodes,
+    record = {"round": cfg.round, "policy": str(Path(cfg.policy_path).resolve()), "learner_episodes": cfg.episodes,
               "learner_seeds": [first_seed, first_seed + cfg.episodes - 1], "every": cfg.every, "horizon": horizon,
               "first_episode_index": first_episode, "snippets": writer.info.total_episodes - first_episode,
               "learner_outcomes": None if events is None else {e: events.count(e) for e in EVENT_NAMES[1:]},
