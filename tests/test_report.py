@@ -27,16 +27,32 @@ def test_tables_from_hand_made_metrics():
     rows = [Row("ORCA", [metrics(0.662, 20.94, 13.17, 0.0918, 0.32)]),
             Row("PDPO", [metrics(0.5, 10.0, 8.0, 0.1, 0.3), metrics(0.7, 12.0, 9.0, 0.05, None)]),
             Row("never succeeds", [metrics(0.0, None, 5.0, 0.0, None)])]
+    rows[0].metrics[0]["n_episodes"] = 500
+    for m, n in zip(rows[1].metrics, (100, 300), strict=True):
+        m["n_episodes"] = n
     md = markdown_table(rows).splitlines()
-    assert md[0] == "| Method | SR (%) | NT (s) | PL (m) | ITR (%) | SD (m) |"
-    assert md[2] == "| ORCA | 66.2 | 20.94 | 13.17 | 9.18 | 0.32 |"
-    # two seeds: mean +- population std; SD defined for one seed only -> that value, no spread
-    assert md[3] == "| PDPO | 60.0 ± 10.0 | 11.00 ± 1.00 | 8.50 ± 0.50 | 7.50 ± 2.50 | 0.30 ± 0.00 |"
-    assert md[4] == "| never succeeds | 0.0 | n/a | 5.00 | 0.00 | n/a |"
+    assert md[0] == "| Method | SR (%) | SR 95 % CI | NT (s) | PL (m) | ITR (%) | SD (m) |"
+    # Wilson: 331 of 500 -> [61.9, 70.2]
+    assert md[2] == "| ORCA | 66.2 | [61.9, 70.2] | 20.94 | 13.17 | 9.18 | 0.32 |"
+    # two seeds: mean +- population std; SD defined for one seed only -> that value, no spread; the
+    # interval pools the seeds' episodes (50 + 210 of 400)
+    assert md[3] == "| PDPO | 60.0 ± 10.0 | [60.2, 69.5] | 11.00 ± 1.00 | 8.50 ± 0.50 | 7.50 ± 2.50 | 0.30 ± 0.00 |"
+    assert md[4] == "| never succeeds | 0.0 | n/a | n/a | 5.00 | 0.00 | n/a |"  # no episode count: no interval
     table = list(csv.DictReader(io.StringIO(csv_table(rows))))
     assert table[1]["method"] == "PDPO" and table[1]["n_seeds"] == "2"
     assert float(table[1]["SR_mean"]) == pytest.approx(60.0) and float(table[1]["SR_std"]) == pytest.approx(10.0)
+    assert float(table[0]["SR95_low"]) == pytest.approx(61.944, abs=0.001) and table[2]["SR95_high"] == ""
     assert table[2]["NT_mean"] == "" and table[2]["SD_std"] == ""
+
+
+def test_wilson_interval_against_known_values():
+    from lerobot_crowdnav.evaluation.metrics import wilson_interval
+
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)  # not [0, 0] as the normal one
+    assert wilson_interval(10, 10) == pytest.approx((0.7225, 1.0), abs=1e-4)
+    assert wilson_interval(50, 100) == pytest.approx((0.4038, 0.5962), abs=1e-4)
+    lo, hi = wilson_interval(366, 500)  # 73.2 %: +-3.9 points
+    assert (lo, hi) == pytest.approx((0.6915, 0.7689), abs=1e-4)
 
 
 def test_boundary_audit_counts_successful_episodes_only():

@@ -35,9 +35,11 @@ TABLES: dict[str, tuple[str, dict, dict[str, dict | None]]] = {
                       dict(task="BoundedCrowdNav-v0", preset="paper"), {**BOUNDED_ROWS, "straight": None}),
     "original_paper": ("original CrowdNav, `paper` preset", dict(task="CrowdNav-v0", preset="paper"),
                        {**ORCA_ROWS, "straight": None}),
-    "bounded_crowdnavpp": ("Bounded CrowdNav, `crowdnavpp` preset (randomized attributes, neighbour-distance quirk)",
+    "bounded_crowdnavpp": ("Bounded CrowdNav, `crowdnavpp` preset (randomized attributes, "
+                           "neighbour-distance quirk, persistent ORCA simulators)",
                            dict(task="BoundedCrowdNav-v0", preset="crowdnavpp"), {**BOUNDED_ROWS, "straight": None}),
-    "original_crowdnavpp": ("original CrowdNav, `crowdnavpp` preset (randomized attributes, neighbour-distance quirk)",
+    "original_crowdnavpp": ("original CrowdNav, `crowdnavpp` preset (randomized attributes, "
+                            "neighbour-distance quirk, persistent ORCA simulators)",
                             dict(task="CrowdNav-v0", preset="crowdnavpp"), {**ORCA_ROWS, "straight": None}),
     "bounded_crowdnavpp_fixed": ("Bounded CrowdNav, `crowdnavpp`, `randomize_attributes=false`",
                                  dict(task="BoundedCrowdNav-v0", preset="crowdnavpp", randomize_attributes=False),

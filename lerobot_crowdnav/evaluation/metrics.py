@@ -81,6 +81,17 @@ def goal_in_wall_zone(goal, arena_size: float, robot_radius: float) -> bool:
     return max(abs(goal[0]), abs(goal[1])) >= arena_size - robot_radius
 
 
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % (z = 1.96) Wilson score interval of a success rate: unlike the normal
+    approximation it stays inside [0, 1] and keeps its coverage near 0 % and 100 %."""
+    if n < 1:
+        return math.nan, math.nan
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
 def _mean(values) -> float:
     values = list(values)
     return sum(values) / len(values) if values else math.nan

@@ -18,12 +18,13 @@ from pathlib import Path
 
 from ..cli import machine_description
 from ..sim.config import SEED_SPLITS
-from .metrics import OUTCOMES, goal_in_wall_zone, outcome
+from .metrics import OUTCOMES, goal_in_wall_zone, outcome, wilson_interval
 from .parameters import parameter_counts
 
 # column -> (metrics key, scale, digits, header)
 COLUMNS = {
     "SR": ("sr", 100.0, 1, "SR (%)"),
+    "SR95": ("sr", 100.0, 1, "SR 95 % CI"),  # Wilson interval over every seed's episodes
     "NT": ("nt", 1.0, 2, "NT (s)"),
     "PL": ("pl", 1.0, 2, "PL (m)"),
     "ITR": ("itr", 100.0, 2, "ITR (%)"),
@@ -32,7 +33,7 @@ COLUMNS = {
     "TR": ("tr", 100.0, 1, "TR (%)"),
     "OOB": ("oob", 100.0, 1, "OOB (%)"),
 }
-RESULT_COLUMNS = ["SR", "NT", "PL", "ITR", "SD"]
+RESULT_COLUMNS = ["SR", "SR95", "NT", "PL", "ITR", "SD"]
 
 
 @dataclass
@@ -58,8 +59,15 @@ def _stats(values: list[float | None]) -> tuple[float, float, int]:
 
 
 def cell(row: Row, column: str) -> tuple[str, float, float]:
-    """Formatted cell, mean and std (scaled units) of ``column`` for ``row``."""
+    """Formatted cell, mean and std (scaled units) of ``column`` for ``row``; for ``SR95`` the
+    interval's bounds instead of mean and std (the episodes of all seeds pooled)."""
     key, scale, digits, _ = COLUMNS[column]
+    if column == "SR95":
+        counts = [(round(m[key] * m["n_episodes"]), m["n_episodes"]) for m in row.metrics if m.get("n_episodes")]
+        if not counts or len(counts) < len(row.metrics):
+            return "n/a", math.nan, math.nan
+        lo, hi = (scale * v for v in wilson_interval(sum(k for k, _ in counts), sum(n for _, n in counts)))
+        return f"[{lo:.{digits}f}, {hi:.{digits}f}]", lo, hi
     mean, std, n = _stats([m.get(key) for m in row.metrics])
     if n == 0:
         return "n/a", math.nan, math.nan
@@ -77,10 +85,12 @@ def markdown_table(rows: list[Row], columns: list[str] = RESULT_COLUMNS, first: 
 
 
 def csv_table(rows: list[Row], columns: list[str] = RESULT_COLUMNS) -> str:
-    """Machine-readable: for each column its mean and std (scaled units) and the seed count."""
+    """Machine-readable: for each column its mean and std (scaled units; SR95: the interval's
+    bounds) and the seed count."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["method", "n_seeds"] + [f"{c}_{s}" for c in columns for s in ("mean", "std")])
+    writer.writerow(["method", "n_seeds"] + [f"{c}_{s}" for c in columns
+                                             for s in (("low", "high") if c == "SR95" else ("mean", "std"))])
     for row in rows:
         values = []
         for c in columns:
