@@ -57,7 +57,7 @@ def test_episode_bitwise_identical_whatever_batch_and_slot(preset, orca_robot):
 
 def test_seed_splits_are_disjoint_and_sized():
     ranges = {k: set(range(*v)) if v[1] - v[0] < 10_000 else None for k, v in SEED_SPLITS.items()}
-    assert len(ranges["val"]) == 100 and len(ranges["test"]) == 500
+    assert len(ranges["val"]) == 1000 and len(ranges["test"]) == 500
     assert not ranges["val"] & ranges["test"]
     train_lo, train_hi = SEED_SPLITS["train"]
     for split in ("val", "test"):

@@ -185,14 +185,16 @@ def test_agent_result_ignores_other_agents_preferred_velocities():
     s = _make_scratch(p.n_humans, p.n_pred, 0)
     base = np.empty((p.n_humans, 2))
     _humans_orca(sim.human_pos[0], sim.human_vel[0], sim.human_goal[0], sim.human_radius[0],
-                 sim.human_vpref[0], np.arange(p.n_humans), p, p.neighbor_dist, NO_OBST, s, base)
+                 sim.human_vpref[0], sim.sim_radius[0], sim.sim_neighbor_dist[0], np.arange(p.n_humans),
+                 p, p.neighbor_dist, NO_OBST, s, base)
     rng = np.random.default_rng(0)
     for i in range(p.n_humans):
         goals = sim.human_goal[0] + rng.normal(0, 5, size=sim.human_goal[0].shape)
         goals[i] = sim.human_goal[0, i]
         out = np.empty_like(base)
         _humans_orca(sim.human_pos[0], sim.human_vel[0], goals, sim.human_radius[0],
-                     sim.human_vpref[0], np.arange(p.n_humans), p, p.neighbor_dist, NO_OBST, s, out)
+                     sim.human_vpref[0], sim.sim_radius[0], sim.sim_neighbor_dist[0],
+                     np.arange(p.n_humans), p, p.neighbor_dist, NO_OBST, s, out)
         assert np.array_equal(out[i], base[i])
         assert not np.array_equal(out, base)
 

@@ -62,7 +62,8 @@ def test_human_out_of_sight_is_extrapolated_step_by_step_and_never_seen_is_a_dum
 
 
 def test_current_state_robot_sees_its_memory_including_dummies():
-    sim = CrowdSim(CrowdSimConfig(task="CrowdNav-v0", orca_robot="current_state", preset="crowdnavpp"), 1)
+    sim = CrowdSim(CrowdSimConfig(task="CrowdNav-v0", orca_robot="current_state", preset="crowdnavpp",
+                                  persistent_orca_sims=False), 1)
     sim.reset([2_000_000_011])
     for _ in orca_episode_steps(sim, 40):
         got = sim.orca_actions()[0]
@@ -79,7 +80,8 @@ def independent_rollout(sim):
     for _ in range(L):
         new = np.empty((n, 2))
         _humans_orca(pos[-1], vel[-1], sim.human_goal[0], sim.human_radius[0], sim.human_vpref[0],
-                     np.arange(n), p, sim.neighbor_dist[0], NO_OBST, s, new)
+                     sim.sim_radius[0], sim.sim_neighbor_dist[0], np.arange(n), p, sim.neighbor_dist[0],
+                     NO_OBST, s, new)
         vel.append(new)
         pos.append(pos[-1] + new * sim.config.dt)
     return np.stack(pos), np.stack(vel)  # (L+1, N, 2) each
@@ -87,7 +89,8 @@ def independent_rollout(sim):
 
 @pytest.mark.parametrize("preset", ["paper", "crowdnavpp"])
 def test_look_ahead_robot_sees_visible_humans_at_the_rollout_positions(preset):
-    sim = CrowdSim(CrowdSimConfig(task="CrowdNav-v0", preset=preset, orca_robot="look_ahead"), 1)
+    sim = CrowdSim(CrowdSimConfig(task="CrowdNav-v0", preset=preset, orca_robot="look_ahead",
+                                  persistent_orca_sims=False), 1)
     sim.reset([2_000_000_021])
     checked = 0
     for _ in range(60):
@@ -176,9 +179,10 @@ def test_neighbor_distance_quirk_redraws_on_reset_and_respawn_only_when_on(quirk
 
 def test_quirk_preset_rules_and_wall_awareness_defaults():
     resolved = lambda **kw: CrowdSimConfig(**kw).resolve()  # noqa: E731
-    assert resolved(preset="crowdnavpp").randomize_neighbor_dist is True
-    assert resolved(preset="crowdnavpp", randomize_attributes=False).randomize_neighbor_dist is False
-    assert resolved(preset="paper").randomize_neighbor_dist is False
+    for quirk in ("randomize_neighbor_dist", "persistent_orca_sims"):
+        assert getattr(resolved(preset="crowdnavpp"), quirk) is True
+        assert getattr(resolved(preset="crowdnavpp", randomize_attributes=False), quirk) is False
+        assert getattr(resolved(preset="paper"), quirk) is False
     assert resolved(preset="paper").orca_robot == "look_ahead"
     assert resolved(preset="crowdnavpp").orca_robot == "current_state"
     assert not resolved().orca_robot_wall_aware
@@ -207,3 +211,110 @@ def test_wall_unaware_robot_hits_walls_wall_aware_does_not_after_start():
 
     assert wall_hits(True) == 0
     assert wall_hits(False) >= 5
+
+
+def test_look_ahead_robot_ignores_a_human_invisible_at_the_last_observation():
+    """As CrowdSimPred: its ORCA robot takes the humans' roll-out from
+    ``calc_human_future_traj('truth')``, which overwrites every human not visible at the last
+    observation with (15, 15), v = 0. A human just out of sensing range, head-on at 1 m/s, leaves
+    the robot's velocity as if it were absent; in range, it turns the robot."""
+    def velocity(sensing_range, human_y):
+        sim = CrowdSim(CrowdSimConfig(task="CrowdNav-v0", preset="crowdnavpp", orca_robot="look_ahead",
+                                      randomize_attributes=False, sensing_range=sensing_range), 1)
+        sim.reset([5])
+        n = sim.config.num_humans
+        sim.human_pos[0] = 1000.0 + 3.0 * np.arange(2 * n).reshape(n, 2)  # parked far away
+        sim.human_goal[0] = sim.human_pos[0] + 1000.0
+        sim.human_vel[0] = 0.0
+        sim.robot_pos[0], sim.robot_goal[0], sim.robot_vel[0] = [0.0, 0.0], [0.0, 20.0], [0.0, 1.0]
+        sim.human_pos[0, 0], sim.human_goal[0, 0], sim.human_vel[0, 0] = [0.1, human_y], [0.1, -20.0], [0.0, -1.0]
+        sim.observe()
+        sim.observe()  # the human's velocity becomes "last observed"
+        return sim.orca_actions()[0], bool(sim.visible[0, 0])
+
+    alone, _ = velocity(5.0, 1000.0)
+    unseen, visible = velocity(5.0, 6.5)  # surface distance 5.9 m
+    assert not visible and np.array_equal(unseen, alone)
+    seen, visible = velocity(10.0, 6.5)
+    assert visible and np.linalg.norm(seen - alone) > 0.05
+
+
+def frozen_scene(seed, **cfg):
+    """What CrowdNav++'s robot builds its simulator from at its first call, in another episode:
+    the memory's radii and the env's neighbour distance right after that episode's reset."""
+    sim = CrowdSim(CrowdSimConfig(**cfg), 1)
+    sim.reset([seed])
+    return sim.seen_radius[0].copy(), float(sim.neighbor_dist[0])
+
+
+@pytest.mark.parametrize("orca_robot", ["current_state", "look_ahead"])
+def test_persistent_robot_keeps_the_radii_and_neighbor_distance_of_its_first_call(orca_robot):
+    """The robot against an independent model of ``ORCA.predict``'s persistent simulator: built
+    once (radii, neighbour distance), then only positions and velocities change; here it was
+    built at episode seed + 1's first observation."""
+    cfg = dict(task="CrowdNav-v0", preset="crowdnavpp", orca_robot=orca_robot)
+    seed = 2_000_000_031
+    radii, nd = frozen_scene(seed + 1, **cfg)
+    sim = CrowdSim(CrowdSimConfig(**cfg), 1)
+    sim.reset([seed])
+    stale = 0
+    for _ in range(80):
+        got = sim.orca_actions()[0]
+        if orca_robot == "current_state":
+            want = robot_velocity(sim, sim.seen_pos[0], sim.seen_vel[0], radii, nd)
+        else:
+            vis = sim.visible[0]
+            pos = np.where(vis[None, :, None], sim.future_pos[0], DUMMY_POS).reshape(-1, 2)
+            vel = np.where(vis[None, :, None], sim.future_vel[0], 0.0).reshape(-1, 2)
+            want = robot_velocity(sim, pos, vel, np.tile(radii, len(sim.future_pos[0])), nd)
+        assert np.array_equal(got, want)
+        stale += int(np.any(radii != sim.seen_radius[0]))
+        if sim.step(got[None]).event[0] != RUNNING:
+            break
+    assert stale >= 10 and nd != sim.neighbor_dist[0]
+
+
+def test_persistent_humans_keep_the_radii_and_neighbor_distance_of_their_creation():
+    """Each human against an independent model of its own persistent simulator: built at its
+    first call after its creation (reset or respawn) with every human's radius and the env's
+    neighbour distance then; a neighbour respawned since keeps its old radius."""
+    sim = CrowdSim(CrowdSimConfig(task="CrowdNav-v0", preset="crowdnavpp", compute_intrusion=False), 1)
+    sim.reset([2_000_000_007])
+    cfg, n = sim.config, sim.config.num_humans
+    pad = cfg.orca_radius_pad + cfg.orca_safety_space
+    built, stale = {}, 0
+    for _ in range(190):
+        want = np.empty((n, 2))
+        for i in range(n):
+            radii, nd = built.setdefault(i, (sim.human_radius[0].copy(), float(sim.neighbor_dist[0])))
+            stale += int(np.any(radii != sim.human_radius[0]) or nd != sim.neighbor_dist[0])
+            dx, dy = sim.human_goal[0, i] - sim.human_pos[0, i]
+            dist = math.sqrt(dx * dx + dy * dy)
+            pref = (dx / dist, dy / dist) if dist > 1 else (dx, dy)
+            want[i] = compute_new_velocity(
+                i, sim.human_pos[0], sim.human_vel[0], radii + pad, np.arange(n), n, sim.human_vpref[0, i],
+                pref[0], pref[1], nd, n, cfg.orca_time_horizon, cfg.orca_time_horizon_obst, cfg.dt,
+                *NO_OBST, np.empty((n, 4)), np.empty((n, 4)), np.empty(n, np.int64), np.empty(n),
+                np.empty(1, np.int64), np.empty(1))
+        sim.step(np.zeros((1, 2)))
+        new = respawned(sim)[0]
+        assert np.array_equal(sim.human_vel[0, ~new], want[~new])
+        for i in np.flatnonzero(new):
+            del built[i]
+    assert stale >= 50
+
+
+def test_simulators_are_resumable_and_older_states_load_where_unused():
+    cfg = dict(task="CrowdNav-v0", preset="crowdnavpp", orca_robot="look_ahead")
+    a, b = CrowdSim(CrowdSimConfig(**cfg), 2), CrowdSim(CrowdSimConfig(**cfg), 2)
+    a.reset([3, 4])
+    for _ in range(30):
+        a.step(a.orca_actions())
+    b.load_state_dict(a.state_dict())
+    for _ in range(40):
+        assert np.array_equal(a.step(a.orca_actions()).reward, b.step(b.orca_actions()).reward)
+    assert np.array_equal(a.obs, b.obs)
+    older = {k: v for k, v in a.state_dict().items() if not k.startswith("sim_")}
+    with pytest.raises(KeyError):
+        b.load_state_dict(older)
+    CrowdSim(CrowdSimConfig(persistent_orca_sims=False, **cfg), 2).load_state_dict(older)

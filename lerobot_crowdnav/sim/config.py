@@ -79,6 +79,8 @@ PRESETS: dict[str, dict] = {
         goal_change_interval=1.0,  # paper text: every 1 s
         orca_robot="look_ahead",  # the paper builds on CrowdSimPred (constant-velocity predictor)
         randomize_neighbor_dist=False,  # not in the paper
+        # Off: on, its Bounded ORCA row reads 51-55 % (the paper: 47.0; off: 49.0; docs/simulator.md).
+        persistent_orca_sims=False,
     ),
     "crowdnavpp": dict(
         _COMMON,
@@ -88,6 +90,7 @@ PRESETS: dict[str, dict] = {
         goal_change_interval=5.0,  # the code: `global_time % 5 == 0`
         orca_robot="current_state",  # CrowdSimVarNum: the env of CrowdNav++'s ORCA baseline
         randomize_neighbor_dist=None,  # the code: on exactly when randomize_attributes is
+        persistent_orca_sims=None,  # the code: always; it matters only when randomize_attributes
     ),
 }
 
@@ -162,6 +165,12 @@ class CrowdSimConfig:
     randomize_neighbor_dist: bool | None = None
     # Range of the redrawn neighbour distance, m ([5, 10]).
     neighbor_dist_range: tuple[float, float] | None = None
+    # CrowdNav++ quirk: every ORCA policy keeps the RVO2 simulator of its first call and only moves
+    # its agents, so the ORCA robot uses the humans' radii (0.3 for those it had not seen) and the
+    # neighbour distance of a first observation in another episode (here: episode seed + 1's), and
+    # each human those of its creation (a respawned neighbour keeps its old radius). Changes the
+    # crowd for every policy. crowdnavpp: = randomize_attributes; paper: false.
+    persistent_orca_sims: bool | None = None
     # ORCA time horizon for agents, s (5).
     orca_time_horizon: float | None = None
     # ORCA time horizon for obstacles (walls, ORCA robot only), s (5).
@@ -204,8 +213,9 @@ class CrowdSimConfig:
         for f in dataclasses.fields(CrowdSimConfig):
             v = getattr(self, f.name)
             values[f.name] = preset[f.name] if v is None else v
-        if values["randomize_neighbor_dist"] is None:  # crowdnavpp: the quirk comes with randomization
-            values["randomize_neighbor_dist"] = values["randomize_attributes"]
+        for quirk in ("randomize_neighbor_dist", "persistent_orca_sims"):  # crowdnavpp: they come
+            if values[quirk] is None:  # with randomization
+                values[quirk] = values["randomize_attributes"]
         for key in ("human_radius_range", "human_v_pref_range", "neighbor_dist_range"):
             values[key] = tuple(float(x) for x in values[key])
         cfg = CrowdSimConfig(**values)

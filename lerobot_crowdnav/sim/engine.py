@@ -14,6 +14,9 @@ seen_pos/vel/radius (B, N[, 2])     the robot's memory of each human (CrowdNav++
 pred                (B, N, L+1, 2)  positions shown in the last observation (k = 0..L), absolute
 visible             (B, N)          visibility in the last observation (by human index)
 neighbor_dist       (B,)            the env's ORCA neighbour distance (redrawn by the quirk)
+sim_radius          (B, N+1, N)     with persistent ORCA simulators (CrowdNav++): the humans' radii
+sim_neighbor_dist   (B, N+1)        and the neighbour distance each one was built with, row 0 the
+                                    robot's, row 1 + i human i's (0: not built yet)
 future_pos/vel      (B, L+1, N, 2)  the humans' ORCA roll-out from the current state, k = 0..L
 rollout_depth       (B,)            steps of that roll-out computed since the last move (0: none)
 rng                 (B, 4) uint64   xoshiro256** state of the episode's own generator
@@ -88,6 +91,7 @@ class Params(NamedTuple):
     orca_pad: float
     orca_robot: int  # LOOK_AHEAD or CURRENT_STATE
     nd_random: bool  # the neighbour-distance quirk
+    persistent: bool  # CrowdNav++'s persistent RVO2 simulators
     nd_lo: float
     nd_hi: float
     success_reward: float
@@ -116,6 +120,7 @@ def make_params(cfg: CrowdSimConfig) -> Params:
         time_horizon_obst=cfg.orca_time_horizon_obst,
         orca_pad=cfg.orca_radius_pad + cfg.orca_safety_space,
         orca_robot=ORCA_ROBOTS.index(cfg.orca_robot), nd_random=cfg.randomize_neighbor_dist,
+        persistent=cfg.persistent_orca_sims,
         nd_lo=cfg.neighbor_dist_range[0], nd_hi=cfg.neighbor_dist_range[1],
         success_reward=cfg.success_reward, collision_penalty=cfg.collision_penalty,
         discomfort_factor=cfg.discomfort_penalty_factor, potential_factor=cfg.potential_factor,
@@ -272,23 +277,32 @@ def _pref_velocity(dx, dy):
 
 
 @nb.njit(cache=True)
-def _humans_orca(hp, hv, hg, hr, hvp, all_idx, p, neighbor_dist, no_obst, s, out):
+def _humans_orca(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, no_obst, s, out):
     """New velocities of all humans: each solves ORCA as agent 0 among all other humans (the
-    robot is invisible to them; no walls)."""
+    robot is invisible to them; no walls). With persistent simulators, human ``i`` sees the radii
+    and neighbour distance its simulator (row ``1 + i`` of ``sim_r``/``sim_nd``) was built with at
+    its first call, building it now if it was created since (0 = not built)."""
     n = p.n_humans
-    for j in range(n):
-        s.radii[j] = hr[j] + p.orca_pad
     for i in range(n):
+        if p.persistent:
+            if sim_nd[1 + i] == 0.0:
+                sim_r[1 + i, :] = hr
+                sim_nd[1 + i] = neighbor_dist
+            held, nd_i = sim_r[1 + i], sim_nd[1 + i]
+        else:
+            held, nd_i = hr, neighbor_dist
+        for j in range(n):
+            s.radii[j] = held[j] + p.orca_pad
         px_, py_ = _pref_velocity(hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1])
         out[i, 0], out[i, 1] = compute_new_velocity(
-            i, hp, hv, s.radii, all_idx, n, hvp[i], px_, py_, neighbor_dist, n,
+            i, hp, hv, s.radii, all_idx, n, hvp[i], px_, py_, nd_i, n,
             p.time_horizon, p.time_horizon_obst, p.dt, no_obst[0], no_obst[1], no_obst[2],
             no_obst[3], no_obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
 
 
 @nb.njit(cache=True)
-def _roll_out(b, depth, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos, fut_vel,
-              rollout_depth, s):
+def _roll_out(b, depth, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r, sim_nd, fut_pos,
+              fut_vel, rollout_depth, s):
     """Extend env ``b``'s roll-out of the humans to ``depth`` steps: k = 0 is the current state,
     each further step is every human's ORCA velocity from the previous one and the move by it
     (robot invisible, goals fixed, no respawns). Step 1 is the humans' actual next move."""
@@ -299,8 +313,8 @@ def _roll_out(b, depth, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos, f
         fut_pos[b, 0] = hp[b]
         fut_vel[b, 0] = hv[b]
     for k in range(done + 1, depth + 1):
-        _humans_orca(fut_pos[b, k - 1], fut_vel[b, k - 1], hg[b], hr[b], hvp[b], all_idx, p, nd[b],
-                     no_obst, s, fut_vel[b, k])
+        _humans_orca(fut_pos[b, k - 1], fut_vel[b, k - 1], hg[b], hr[b], hvp[b], sim_r[b], sim_nd[b],
+                     all_idx, p, nd[b], no_obst, s, fut_vel[b, k])
         for i in range(p.n_humans):
             fut_pos[b, k, i, 0] = fut_pos[b, k - 1, i, 0] + fut_vel[b, k, i, 0] * p.dt
             fut_pos[b, k, i, 1] = fut_pos[b, k - 1, i, 1] + fut_vel[b, k, i, 1] * p.dt
@@ -365,7 +379,25 @@ def _observe(b, p, rp, rv, rg, hp, hv, hr, seen_pos, seen_vel, seen_r, pred, vis
 
 @nb.njit(cache=True)
 def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
-               seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth, obs, s):
+               seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd, fut_pos, fut_vel, rollout_depth,
+               obs, s):
+    """Start episode ``seed`` in slot ``b``. With persistent ORCA simulators (CrowdNav++ keeps the
+    robot's across episodes), the robot's was built in another episode: it holds the radii (its
+    memory then: true if visible, 0.3 if not) and the neighbour distance of the first observation
+    of episode ``seed + 1``, and each human's is built at its first call (0 = not built yet)."""
+    state = (rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos, seen_vel, seen_r,
+             pred, visible, nd, rollout_depth, obs, s)
+    if p.persistent:
+        _start_episode(b, seed + 1, p, *state)
+        sim_r[b, 0] = seen_r[b]
+        sim_nd[b, 0] = nd[b]
+    _start_episode(b, seed, p, *state)
+    sim_nd[b, 1:] = 0.0
+
+
+@nb.njit(cache=True)
+def _start_episode(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
+                   seen_vel, seen_r, pred, visible, nd, rollout_depth, obs, s):
     r = rng[b]
     seed_rng(r, seed)
     a = p.arena - p.spawn_margin
@@ -392,9 +424,9 @@ def _reset_one(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, h
 
 @nb.njit(cache=True)
 def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg,
-              hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel,
-              rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion, out_intr_dist,
-              out_distance, out_oob, s):
+              hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd, fut_pos,
+              fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
+              out_intr_dist, out_distance, out_oob, s):
     n, L, dt = p.n_humans, p.n_pred, p.dt
     # (1) Robot action, clipped by norm to v_pref; humans' ORCA from current states (step 1 of
     # the roll-out; all L steps when the intrusion test needs the true futures).
@@ -402,8 +434,8 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
     speed = math.sqrt(ax * ax + ay * ay)
     if speed > p.robot_vpref:
         ax, ay = ax * (p.robot_vpref / speed), ay * (p.robot_vpref / speed)
-    _roll_out(b, L if p.intrusion else 1, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos,
-              fut_vel, rollout_depth, s)
+    _roll_out(b, L if p.intrusion else 1, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r,
+              sim_nd, fut_pos, fut_vel, rollout_depth, s)
 
     # (2) Reward and termination on the pre-move positions.
     rx, ry = rp[b, 0], rp[b, 1]
@@ -479,11 +511,13 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
     for i in range(n):
         if (hg[b, i, 0] - hp[b, i, 0]) ** 2 + (hg[b, i, 1] - hp[b, i, 1]) ** 2 < hr[b, i] ** 2:
             _spawn_human(i, n, r, rp[b], rg[b], hp[b], hv[b], hg[b], hr[b], hvp[b], nd[b:b + 1], p)
+            sim_nd[b, 1 + i] = 0.0  # a new human, a new simulator
 
 
 @nb.njit(cache=True)
 def _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
-                    seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth, s, out):
+                    seen_vel, seen_r, visible, nd, sim_r, sim_nd, fut_pos, fut_vel, rollout_depth,
+                    s, out):
     """The ORCA robot's velocity: agent 0, max speed v_pref, preferred velocity toward its goal,
     every agent it sees a neighbour candidate (CrowdNav++ ``ORCA.predict``).
 
@@ -493,8 +527,12 @@ def _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, 
     plus the ORCA pad; walls only if ``robot_obst`` holds them (wall-aware robot)."""
     n, L = p.n_humans, p.n_pred
     if p.orca_robot == LOOK_AHEAD:  # first: the roll-out uses the same scratch
-        _roll_out(b, L, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, fut_pos, fut_vel,
-                  rollout_depth, s)
+        _roll_out(b, L, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r, sim_nd, fut_pos,
+                  fut_vel, rollout_depth, s)
+    if p.persistent:
+        held, nd_r = sim_r[b, 0], sim_nd[b, 0]
+    else:
+        held, nd_r = seen_r[b], nd[b]
     s.agents_pos[0, 0], s.agents_pos[0, 1] = rp[b, 0], rp[b, 1]
     s.agents_vel[0, 0], s.agents_vel[0, 1] = rv[b, 0], rv[b, 1]
     s.radii[0] = p.robot_radius + p.orca_pad
@@ -509,17 +547,17 @@ def _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, 
                 else:
                     s.agents_pos[a, 0], s.agents_pos[a, 1] = DUMMY_POS, DUMMY_POS
                     s.agents_vel[a, 0], s.agents_vel[a, 1] = 0.0, 0.0
-                s.radii[a] = seen_r[b, i] + p.orca_pad
+                s.radii[a] = held[i] + p.orca_pad
     else:
         n_agents = n
         for i in range(n):
             s.agents_pos[i + 1, 0], s.agents_pos[i + 1, 1] = seen_pos[b, i, 0], seen_pos[b, i, 1]
             s.agents_vel[i + 1, 0], s.agents_vel[i + 1, 1] = seen_vel[b, i, 0], seen_vel[b, i, 1]
-            s.radii[i + 1] = seen_r[b, i] + p.orca_pad
+            s.radii[i + 1] = held[i] + p.orca_pad
     px_, py_ = _pref_velocity(rg[b, 0] - rp[b, 0], rg[b, 1] - rp[b, 1])
     out[b, 0], out[b, 1] = compute_new_velocity(
         0, s.agents_pos, s.agents_vel, s.radii, s.candidates, n_agents, p.robot_vpref, px_, py_,
-        nd[b], n_agents, p.time_horizon, p.time_horizon_obst, p.dt, robot_obst[0], robot_obst[1],
+        nd_r, n_agents, p.time_horizon, p.time_horizon_obst, p.dt, robot_obst[0], robot_obst[1],
         robot_obst[2], robot_obst[3], robot_obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist,
         s.ob_idx, s.ob_dist)
 
@@ -531,41 +569,43 @@ def _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, 
 
 @nb.njit(cache=True)
 def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
-               seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth, obs):
+               seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd, fut_pos, fut_vel, rollout_depth,
+               obs):
     # Serial: a reset costs a few microseconds, less than waking the thread pool for the handful
     # of slots an autoreset touches.
     s = _make_scratch(p.n_humans, p.n_pred, 0)
     for q in range(idx.shape[0]):
-        _reset_one(idx[q], seeds[q], p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
-                   hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel,
+        _reset_one(idx[q], seeds[q], p, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr, hvp,
+                   seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd, fut_pos, fut_vel,
                    rollout_depth, obs, s)
 
 
 @nb.njit(cache=True, parallel=True)
-def step_many(n_chunks, actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg, hr,
-              hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos, fut_vel, rollout_depth,
-              obs, out_reward, out_event, out_dmin, out_intrusion, out_intr_dist, out_distance,
-              out_oob):
+def step_many(n_chunks, actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp,
+              hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd,
+              fut_pos, fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
+              out_intr_dist, out_distance, out_oob):
     n_env = actions.shape[0]
     for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, 0)
         for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
             _step_one(b, actions[b], p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg,
-                      hp, hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, fut_pos,
-                      fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
-                      out_intr_dist, out_distance, out_oob, s)
+                      hp, hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r,
+                      sim_nd, fut_pos, fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin,
+                      out_intrusion, out_intr_dist, out_distance, out_oob, s)
 
 
 @nb.njit(cache=True, parallel=True)
-def orca_robot_many(n_chunks, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp, seen_pos,
-                    seen_vel, seen_r, visible, nd, fut_pos, fut_vel, rollout_depth, out):
+def orca_robot_many(n_chunks, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp,
+                    seen_pos, seen_vel, seen_r, visible, nd, sim_r, sim_nd, fut_pos, fut_vel,
+                    rollout_depth, out):
     n_env = rp.shape[0]
     for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, robot_obst[0].shape[0])
         for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
             _orca_robot_one(b, p, robot_obst, no_obst, all_idx, rp, rv, rg, hp, hv, hg, hr, hvp,
-                            seen_pos, seen_vel, seen_r, visible, nd, fut_pos, fut_vel,
-                            rollout_depth, s, out)
+                            seen_pos, seen_vel, seen_r, visible, nd, sim_r, sim_nd, fut_pos,
+                            fut_vel, rollout_depth, s, out)
 
 
 PARALLEL_MIN_BATCH = 16  # below this, a Python loop over the per-env kernels is faster
@@ -614,6 +654,7 @@ class CrowdSim:
         self.pred = np.zeros((B, n, L + 1, 2))
         self.visible = np.zeros((B, n), np.bool_)
         self.neighbor_dist = np.zeros(B)
+        self.sim_radius, self.sim_neighbor_dist = np.zeros((B, n + 1, n)), np.zeros((B, n + 1))
         self.future_pos, self.future_vel = np.zeros((B, L + 1, n, 2)), np.zeros((B, L + 1, n, 2))
         self.rollout_depth = np.zeros(B, np.int64)
         self.obs = np.zeros((B, self.config.obs_dim), np.float32)
@@ -622,10 +663,11 @@ class CrowdSim:
         self._scratch = _make_scratch(n, L, self.robot_obstacles[0].shape[0])
 
     # The state arrays, in the order the kernels take them.
-    STATE_FIELDS = ("rng", "step_count", "potential", "robot_pos", "robot_vel", "robot_goal", "human_pos",
-                    "human_vel", "human_goal", "human_radius", "human_vpref", "seen_pos", "seen_vel",
-                    "seen_radius", "pred", "visible", "neighbor_dist", "future_pos", "future_vel",
-                    "rollout_depth", "obs")
+    STATE_FIELDS = ("rng", "step_count", "potential", "robot_pos", "robot_vel", "robot_goal",
+                    "human_pos", "human_vel", "human_goal", "human_radius", "human_vpref",
+                    "seen_pos", "seen_vel", "seen_radius", "pred", "visible", "neighbor_dist",
+                    "sim_radius", "sim_neighbor_dist", "future_pos", "future_vel", "rollout_depth",
+                    "obs")
 
     def _state(self):
         return tuple(getattr(self, name) for name in self.STATE_FIELDS)
@@ -636,8 +678,13 @@ class CrowdSim:
         return {name: getattr(self, name).copy() for name in (*self.STATE_FIELDS, "seeds")}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        """States saved before the persistent ORCA simulators lack ``sim_radius`` and
+        ``sim_neighbor_dist``; they load where nothing reads them (``persistent_orca_sims`` off)."""
         for name in (*self.STATE_FIELDS, "seeds"):
             current = getattr(self, name)
+            if name.startswith("sim_") and name not in state and not self.params.persistent:
+                current[...] = 0.0
+                continue
             value = np.asarray(state[name])
             if value.shape != current.shape or value.dtype != current.dtype:
                 raise ValueError(f"simulator state {name!r}: got {value.dtype}{value.shape}, "
@@ -702,7 +749,8 @@ class CrowdSim:
         args = (self.params, self.robot_obstacles, self._no_obstacles, self._all_idx,
                 self.robot_pos, self.robot_vel, self.robot_goal, self.human_pos, self.human_vel,
                 self.human_goal, self.human_radius, self.human_vpref, self.seen_pos, self.seen_vel,
-                self.seen_radius, self.visible, self.neighbor_dist, self.future_pos,
+                self.seen_radius, self.visible, self.neighbor_dist, self.sim_radius,
+                self.sim_neighbor_dist, self.future_pos,
                 self.future_vel, self.rollout_depth)
         if self._parallel:
             orca_robot_many(self._n_chunks(), *args, out)
