@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 import torch
 from safetensors.torch import load_file
 
+from .checkpoint_files import FINETUNE_CONFIG, WEIGHTS
 from .cli import run_cli
 from .data.dataset import COLLECTION_FILE
 from .fault import ENV
@@ -136,7 +137,7 @@ def check_last_checkpoint(out: Path) -> None:
     last = out / "checkpoints" / "last"
     if not last.exists():
         return
-    for rel in ("pretrained_model/model.safetensors", "pretrained_model/finetune_config.json",
+    for rel in (f"pretrained_model/{WEIGHTS}", f"pretrained_model/{FINETUNE_CONFIG}",
                 "training_state/optimizers.pt", "training_state/env_rank0.npz", "training_state/rng_rank0.json"):
         assert (last / rel).is_file(), f"checkpoints/last -> {last.resolve().name} lacks {rel}"
     torch.load(last / "training_state/optimizers.pt", weights_only=True)

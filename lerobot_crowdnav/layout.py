@@ -6,7 +6,7 @@ processors read (``observation.state``, float32, robot-centred where noted).
 * robot (world frame): px, py (m), radius (m), gx, gy (m), v_pref (m/s), theta (rad)
 * robot velocity (world frame): vx, vy (m/s)
 * humans: one row per human slot, the positions at k = 0..L prediction steps relative to the
-  robot (m), visible humans first (nearest first); rows of invisible slots hold the sentinel 15
+  robot (m), visible humans first (nearest first); rows of invisible slots hold ``SENTINEL``
 * mask: 1 for the visible rows, 0 for the sentinel rows
 
 The module imports nothing, so the policy plugin can read it without loading the simulator.
@@ -17,6 +17,9 @@ from __future__ import annotations
 ROBOT_DIM = 7  # px, py, radius, gx, gy, v_pref, theta
 VELOCITY_DIM = 2  # vx, vy
 SELF_DIM = ROBOT_DIM + VELOCITY_DIM  # the robot's own floats (the paper's w): 9
+# The value of every float of an invisible human's row: the simulator's default (--env.sentinel),
+# and what PDPO's state statistics leave out (its config's sentinel_value).
+SENTINEL = 15.0
 
 
 def human_row_dim(prediction_steps: int) -> int:
@@ -35,6 +38,15 @@ def mask_slice(num_humans: int, prediction_steps: int) -> slice:
 
 def obs_dim(num_humans: int, prediction_steps: int) -> int:
     return mask_slice(num_humans, prediction_steps).stop
+
+
+def check_sentinel(policy_config, sentinel: float) -> None:
+    """A policy that knows the sentinel (``sentinel_value``: PDPO normalizes the human rows with
+    statistics that leave the sentinel rows out) must read an env that writes the same one."""
+    expected = getattr(policy_config, "sentinel_value", sentinel)
+    if expected != sentinel:
+        raise ValueError(f"the policy was trained on invisible-human rows of {expected} (its sentinel_value); the env "
+                         f"writes {sentinel} (--env.sentinel): its normalization would be wrong")
 
 
 def check_policy_features(config, policy: str) -> None:

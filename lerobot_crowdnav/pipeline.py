@@ -48,7 +48,8 @@ import draccus
 from . import fault
 from .cli import machine_description, run_cli
 from .evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
-from .sim.config import SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
+from .checkpoint_files import FINETUNE_CONFIG, TRAIN_PPO_CONFIG
+from .sim.config import PPO_STAGE2_ENV_SEED, SEED_SPLITS, TASKS, CrowdSimConfig, split_seeds
 
 SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
 # The trained models shipped in the repository (hub format: models/<org>/<name>), made by the
@@ -326,7 +327,7 @@ class Pipeline:
         c = self.cfg
         out = self.finetune_dir(task, h, seed, stage)
         steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
-        saved = out / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
+        saved = out / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG
         done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= steps
         source = (self.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
                   else self.finetune_dir(task, h, seed) / "checkpoints" / "best") / "pretrained_model"
@@ -334,7 +335,7 @@ class Pipeline:
                 *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
                 f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
                 f"--save_freq={max(c.ft_val_freq, steps // 4)}", f"--output_dir={out}", *c.ft_args]
-        argv += [f"--seed={seed}"] if stage == 1 else [f"--seed={seed + 1}", "--env_seed=520000000", *c.ft2_args]
+        argv += [f"--seed={seed}"] if stage == 1 else [f"--seed={seed + 1}", f"--env_seed={PPO_STAGE2_ENV_SEED}", *c.ft2_args]
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
@@ -343,10 +344,10 @@ class Pipeline:
 
     def train_crowdnavpp(self, task: str, seed: int) -> Stage:
         """CrowdNav++ from scratch by PPO (the reference's settings are the CLI's defaults)."""
-        from .rl.train_ppo import CONFIG_NAME, main as train_ppo_main
+        from .rl.train_ppo import main as train_ppo_main
 
         out = self.crowdnavpp_dir(task, seed)
-        saved = out / "checkpoints" / "last" / "pretrained_model" / CONFIG_NAME
+        saved = out / "checkpoints" / "last" / "pretrained_model" / TRAIN_PPO_CONFIG
         c = self.cfg
         done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= c.crowdnavpp_env_steps
         argv = ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp", *self._env_flags(task),
@@ -497,7 +498,7 @@ class Pipeline:
         first = read(self.finetune_dir(task, h, seed))
         if 2 not in self.ft_stages:
             return {label: first}
-        best = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
+        best = self.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / FINETUNE_CONFIG
         start = json.loads(best.read_text())["env_steps_done"]
         spent = max(r.get("time/wall_s") or 0.0 for r in first)
         second = [{**r, "env_steps": r["env_steps"] + start,

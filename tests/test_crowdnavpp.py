@@ -277,9 +277,8 @@ def test_agent_scores_a_rollout_as_it_acted():
     import numpy as np
     from accelerate import Accelerator
 
-    from lerobot_crowdnav.rl.crowdnavpp import make_agent
+    from lerobot_crowdnav.rl.crowdnavpp import CrowdNavPPPPOConfig, make_agent
     from lerobot_crowdnav.rl.loop import Collector, update
-    from lerobot_crowdnav.rl.train_ppo import CrowdNavPPPPOConfig
     from lerobot_crowdnav.sim.config import CrowdSimConfig
     from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 
@@ -369,10 +368,13 @@ def test_bad_policy_type_is_refused(tmp_path):
 def test_configs_parse_with_the_reference_ppo(name, task, preset):
     import draccus
 
-    from lerobot_crowdnav.rl.train_ppo import CrowdNavPPPPOConfig, TrainPPOConfig
+    from lerobot_crowdnav.rl import families
+    from lerobot_crowdnav.rl.crowdnavpp import CrowdNavPPPPOConfig
+    from lerobot_crowdnav.rl.train_ppo import config_class, policy_type
 
     root = Path(__file__).resolve().parents[1]
-    cfg = draccus.parse(TrainPPOConfig, config_path=str(root / "configs" / "rl" / f"{name}.yaml"), args=[])
+    path = str(root / "configs" / "rl" / f"{name}.yaml")
+    cfg = draccus.parse(config_class(families.get(policy_type([f"--config_path={path}"]))), config_path=path, args=[])
     cfg.validate()
     sim = cfg.env.resolve()
     assert (sim.task, sim.preset, sim.randomize_attributes) == (task, preset, True)

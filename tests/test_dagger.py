@@ -11,9 +11,9 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from conftest import make_tiny_checkpoint
-from lerobot_crowdnav.data.dagger import DAGGER_SEED_BASE, ROUND_SEEDS, main as dagger_main, teacher_snippets
+from lerobot_crowdnav.data.dagger import ROUND_SEEDS, main as dagger_main, teacher_snippets
 from lerobot_crowdnav.data.dataset import COLLECTION_FILE
-from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.config import DAGGER_SEED_BASE, CrowdSimConfig
 from lerobot_crowdnav.sim.engine import HUMAN_COLLISION, RUNNING, SUCCESS, WALL_COLLISION, CrowdSim
 
 

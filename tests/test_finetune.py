@@ -20,7 +20,8 @@ from lerobot_crowdnav.data.hub import policy_card
 from lerobot_crowdnav.evaluation.eval import main as eval_main
 from lerobot_crowdnav.rl import finetune as ft
 from lerobot_crowdnav.rl.config import DiffusionPPOConfig
-from lerobot_crowdnav.rl.dppo import CRITIC_FILE, ValueHead, load_agent, transition_log_prob
+from lerobot_crowdnav.checkpoint_files import CRITIC
+from lerobot_crowdnav.rl.dppo import ValueHead, load_agent, transition_log_prob
 from lerobot_crowdnav.rl.loop import Collector, Columns, update
 from lerobot_crowdnav.rl.ppo import RunningRewardScaler, clip_coefficients, denoising_discounts, gae
 from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
@@ -265,7 +266,7 @@ def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp
         torch.testing.assert_close(a, b)
     assert any(not torch.equal(a, b) for a, b in zip(policy.actor.denoiser.parameters(), base.actor.denoiser.parameters(), strict=True))
     # the critic is saved beside the policy, trained away from the fresh one a BC checkpoint gets
-    assert (path / CRITIC_FILE).exists() and not any(k.startswith("value.") for k in policy.state_dict())
+    assert (path / CRITIC).exists() and not any(k.startswith("value.") for k in policy.state_dict())
     ppo = DiffusionPPOConfig()
     trained, fresh = load_agent(path, ppo, seed=3).critic, load_agent(pretrained, ppo, seed=3).critic
     assert any(not torch.equal(a, b) for a, b in zip(trained.parameters(), fresh.parameters(), strict=True))
@@ -363,13 +364,23 @@ def test_bad_input_is_refused_before_any_work(pretrained, tmp_path):
         run(pretrained, tmp_path / "o3", "--env.num_humans=10")
     with pytest.raises(SystemExit, match="batch_size"):
         run(pretrained, tmp_path / "o4", "--ppo.batch_size=1000")
+    # PDPO's state statistics leave out rows of its sentinel_value: another --env.sentinel is refused
+    with pytest.raises(SystemExit, match=r"invisible-human rows of 15.0 .*writes 10.0 \(--env.sentinel\)"):
+        run(pretrained, tmp_path / "o6", "--env.sentinel=10")
     (tmp_path / "o5").mkdir()
     (tmp_path / "o5" / "keep.txt").write_text("x")
     with pytest.raises(SystemExit, match="exists"):
         run(pretrained, tmp_path / "o5")
     assert (tmp_path / "o5" / "keep.txt").read_text() == "x"
-    for out in ("o1", "o2", "o3", "o4"):
+    for out in ("o1", "o2", "o3", "o4", "o6"):
         assert not (tmp_path / out).exists()
+
+
+def test_evaluation_refuses_an_env_with_another_sentinel(pretrained):
+    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+
+    with pytest.raises(ValueError, match="--env.sentinel"):
+        LearnedPolicy(pretrained, "cpu", 269, sentinel=10.0)
 
 
 def test_accelerate_two_processes_run_one_iteration(pretrained, tmp_path):

@@ -19,7 +19,8 @@ PACKAGES = {  # top-level package -> its directory
 EV = "lerobot_crowdnav.evaluation"
 # Lowest first. A module belongs to the layer of its longest listed prefix (a package or a module).
 LAYERS: list[tuple[str, list[str]]] = [
-    ("base", ["lerobot_crowdnav.layout", "lerobot_crowdnav.cli", "lerobot_crowdnav.fault"]),
+    ("base", ["lerobot_crowdnav.layout", "lerobot_crowdnav.cli", "lerobot_crowdnav.fault",
+              "lerobot_crowdnav.checkpoint_files"]),
     # The package's __init__ registers the gymnasium envs (reads sim.config), hence this layer.
     ("sim", ["lerobot_crowdnav", "lerobot_crowdnav.sim", "lerobot_env_crowdnav"]),
     ("evaluation core", [EV, f"{EV}.metrics", f"{EV}.episodes", f"{EV}.plots", f"{EV}.parameters"]),

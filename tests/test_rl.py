@@ -1,18 +1,29 @@
 """The PPO loop is policy-agnostic: a tiny Gaussian actor-critic, written here against the
 protocol of lerobot_crowdnav.rl.agent and touching nothing of the trainer, learns a trivial task
 with the same collect/update code as diffusion PPO; its GRU variant trains on per-env sequences
-and learns what a feed-forward policy cannot (remember a cue)."""
+and learns what a feed-forward policy cannot (remember a cue). This module also makes the MLP a
+policy family (rl/families.py) of lerobot-crowdnav-train-ppo, which then trains, checkpoints,
+resumes and publishes it with no change elsewhere."""
 
 from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from accelerate import Accelerator
+from safetensors.torch import load_file, save_file
 from torch import nn
 
-from lerobot_crowdnav.rl.agent import Scores, Step
-from lerobot_crowdnav.rl.config import PPOConfig
+from lerobot_crowdnav.checkpoint_files import POLICY_CONFIG, WEIGHTS
+from lerobot_crowdnav.data.hub import policy_card, register_model_card
+from lerobot_crowdnav.rl.agent import Scores, Step, check_actor_critic
+from lerobot_crowdnav.rl.config import DiffusionPPOConfig, PPOConfig
+from lerobot_crowdnav.rl.families import Family, register
 from lerobot_crowdnav.rl.loop import Collector, update
 from lerobot_crowdnav.rl.ppo import RunningRewardScaler
 
@@ -49,12 +60,15 @@ class CueEnv:
 class GaussianActorCritic(nn.Module):
     """A Gaussian policy and a value head on a shared MLP (or GRU, ``recurrent``) core."""
 
-    def __init__(self, obs_dim: int, recurrent: bool, hidden: int = 32):
+    n_parts = 1
+
+    def __init__(self, obs_dim: int, recurrent: bool, hidden: int = 32, act_dim: int = 1):
         super().__init__()
         self.recurrent, self.hidden = recurrent, hidden
+        self.dims = {"obs_dim": obs_dim, "recurrent": recurrent, "hidden": hidden, "act_dim": act_dim}
         self.core = nn.GRUCell(obs_dim, hidden) if recurrent else nn.Sequential(nn.Linear(obs_dim, hidden), nn.Tanh())
-        self.mu, self.value_head = nn.Linear(hidden, 1), nn.Linear(hidden, 1)
-        self.log_std = nn.Parameter(torch.full((1,), -0.5))
+        self.mu, self.value_head = nn.Linear(hidden, act_dim), nn.Linear(hidden, 1)
+        self.log_std = nn.Parameter(torch.full((act_dim,), -0.5))
 
     def initial_memory(self, num_envs: int):
         return torch.zeros(num_envs, self.hidden) if self.recurrent else None
@@ -84,12 +98,18 @@ class GaussianActorCritic(nn.Module):
     def forward(self, samples, memory, episode_start):
         h, _ = self._features(samples["obs"], memory, episode_start)
         dist = torch.distributions.Normal(self.mu(h), self.log_std.exp())
-        return Scores(dist.log_prob(samples["action"]), self.value_head(h).squeeze(-1), dist.entropy().sum(-1))
+        return Scores(dist.log_prob(samples["action"]).sum(-1, keepdim=True), self.value_head(h).squeeze(-1),
+                      dist.entropy().sum(-1))
 
     @torch.no_grad()
     def value(self, obs, memory):
         h, _ = self._features(obs[None], memory, torch.zeros(1, obs.shape[0], dtype=torch.bool))
         return self.value_head(h[0]).squeeze(-1)
+
+    def save(self, path: Path) -> None:
+        path.mkdir(parents=True, exist_ok=True)
+        (path / POLICY_CONFIG).write_text(json.dumps({"type": "gaussian_mlp", **self.dims}))
+        save_file({k: v.contiguous() for k, v in self.state_dict().items()}, str(path / WEIGHTS))
 
 
 def deterministic_return(agent, cue_always: bool, n: int = 256) -> float:
@@ -127,3 +147,78 @@ def test_a_second_actor_critic_learns_with_the_same_ppo_loop(recurrent):
     # Remembering the cue is worth more than the best memoryless policy (a = 0 after the cue step: -0.75).
     assert after > max(before + 0.4, -0.75 + 0.3 if recurrent else -0.2), (before, after)
     assert stats["explained_variance"] > 0.2 and "entropy" in stats
+
+
+# -- the MLP as a policy family of lerobot-crowdnav-train-ppo: this module is all it takes ----------
+@dataclass
+class GaussianPPOConfig(PPOConfig):
+    """The family's recipe: tiny, so that a test run is quick."""
+
+    n_steps: int = 8
+    batch_size: int = 16
+    update_epochs: int = 2
+    n_critic_warmup_itr: int = 1
+
+
+def build_gaussian_agent(source: Path | None, sim_cfg, seed: int) -> GaussianActorCritic:
+    if source is None:
+        torch.manual_seed(seed)
+        return GaussianActorCritic(sim_cfg.obs_dim, False, act_dim=2)
+    config = json.loads((source / POLICY_CONFIG).read_text())
+    if config.pop("type") != "gaussian_mlp" or config["obs_dim"] != sim_cfg.obs_dim:
+        raise ValueError(f"{source} is not a gaussian_mlp policy for this env")
+    agent = GaussianActorCritic(**config)
+    agent.load_state_dict(load_file(str(source / WEIGHTS)))
+    return agent
+
+
+register(Family("gaussian_mlp", build_gaussian_agent, GaussianPPOConfig, {"num_envs": 4, "seed": 3}))
+
+
+@register_model_card("gaussian_mlp")
+def gaussian_card(pretrained, repo_id, config, metrics=None, recipe=None, curve=None):
+    from huggingface_hub import ModelCard
+
+    return ModelCard(f"# {repo_id}\n\nA Gaussian MLP policy ({config['hidden']} hidden units).\n")
+
+
+def train_gaussian(out: Path, *extra: str) -> list[dict]:
+    from lerobot_crowdnav.rl.train_ppo import main
+
+    main(["--policy.type=gaussian_mlp", f"--output_dir={out}", "--val.n_episodes=2", "--save_freq=32", *extra])
+    return [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]
+
+
+def test_a_registered_family_trains_checkpoints_and_resumes_through_the_ppo_cli(tmp_path):
+    straight = train_gaussian(tmp_path / "a", "--env_steps=96")
+    path = tmp_path / "a" / "checkpoints" / "last" / "pretrained_model"
+    settings = json.loads((path / "train_ppo_config.json").read_text())
+    # the family's recipe gave the defaults
+    assert settings["policy"]["type"] == "gaussian_mlp" and settings["ppo"]["n_steps"] == 8
+    assert (settings["num_envs"], settings["seed"], settings["env_steps_done"]) == (4, 3, 96)
+    assert [r.get("critic_warmup") for r in straight] == [None, 1.0, 0.0, 0.0]
+    first = train_gaussian(tmp_path / "b", "--env_steps=32")
+    assert first[-1]["env_steps"] == 32
+    resumed = train_gaussian(tmp_path / "b", "--env_steps=96", "--resume=true")
+    for i in (2, 3):
+        assert resumed[i]["rollout_digest"] == straight[i]["rollout_digest"]
+        assert resumed[i]["loss/policy_loss"] == straight[i]["loss/policy_loss"]
+    assert "A Gaussian MLP policy (32 hidden units)" in str(policy_card(path, "local/gaussian"))
+    (path / POLICY_CONFIG).write_text(json.dumps({"type": "unknown"}))
+    with pytest.raises(ValueError, match="'unknown' policy, which has no model card"):
+        policy_card(path, "local/unknown")
+
+
+def test_an_agent_is_checked_against_the_protocol_and_the_ppo_settings():
+    agent = GaussianActorCritic(2, False)
+    but_save = {m: getattr(agent, m) for m in ("recurrent", "n_parts", "initial_memory", "act", "forward", "value",
+                                               "param_groups")}
+    with pytest.raises(TypeError, match="it lacks save$"):  # the trainer would fail at its first checkpoint
+        check_actor_critic(SimpleNamespace(**but_save), PPOConfig())
+    check_actor_critic(agent, PPOConfig())
+    with pytest.raises(ValueError, match="clip_per_part has shape \\(3,\\)"):  # one clip per scored part
+        check_actor_critic(agent, DiffusionPPOConfig(ft_denoising_steps=3))
+    agent.param_groups = lambda: {"actor": list(agent.parameters())}  # a shared trunk: nothing to warm up
+    with pytest.raises(ValueError, match="n_critic_warmup_itr=2"):
+        check_actor_critic(agent, PPOConfig())
+    check_actor_critic(agent, PPOConfig(n_critic_warmup_itr=0))

@@ -35,12 +35,11 @@ from tqdm import tqdm
 
 from .. import fault
 from ..cli import run_cli
-from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.config import DAGGER_SEED_BASE, SEED_SPLITS, CrowdSimConfig
 from ..sim.engine import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
 from .dataset import COLLECTION_FILE, DemonstrationWriter
 
-DAGGER_SEED_BASE = 800_000_000  # learner episodes of round r: train seeds from base + r * 1,000,000
-ROUND_SEEDS = 1_000_000
+ROUND_SEEDS = 1_000_000  # learner episodes of round r: train seeds from DAGGER_SEED_BASE + r * ROUND_SEEDS
 CARD_MARKER = "\n<!-- dagger rounds -->\n"
 
 

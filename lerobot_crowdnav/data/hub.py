@@ -14,12 +14,15 @@ pretrained_model> --repo_id=<org>/<name> --push_to_hub_dir=<dir> [--overwrite=tr
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot.datasets.utils import create_lerobot_dataset_card
 
 from .. import fault
+from ..checkpoint_files import (BEST_INFO, CRITIC, FINETUNE_CONFIG, POLICY_CONFIG, SOURCE_PREFIX, TRAIN_CONFIG,
+                                TRAIN_PPO_CONFIG, WEIGHTS)
 from ..cli import run_cli
 from ..sim.config import CrowdSimConfig
 from .dataset import FPS
@@ -92,6 +95,9 @@ def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, ove
 
 
 PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
+# What a policy repository holds besides its processors and card.
+POLICY_FILES = (POLICY_CONFIG, WEIGHTS, CRITIC, TRAIN_CONFIG, FINETUNE_CONFIG, SOURCE_PREFIX + FINETUNE_CONFIG,
+                TRAIN_PPO_CONFIG)
 
 
 def split_repo_id(repo_id: str) -> tuple[str, str]:
@@ -119,7 +125,7 @@ def best_checkpoint_lines(pretrained: Path) -> list[str]:
     """Why these weights: a PPO run's ``checkpoints/best`` has ``best.json`` beside it."""
     import json
 
-    best = pretrained.parent / "best.json"
+    best = pretrained.parent / BEST_INFO
     if not best.exists():
         return []
     b = json.loads(best.read_text())
@@ -148,24 +154,49 @@ def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: st
                     "--eval.n_episodes=50 --seed=2000000000", "```"]
 
 
+# Policy type (the "type" of its config.json) -> its model card writer, ``card(pretrained, repo_id,
+# config, metrics, recipe, curve) -> ModelCard``; a policy family's module registers its own.
+MODEL_CARDS: dict[str, Callable] = {}
+
+
+def register_model_card(policy_type: str) -> Callable[[Callable], Callable]:
+    """Decorator: the decorated function writes the model card of ``policy_type`` policies."""
+    def add(card: Callable) -> Callable:
+        MODEL_CARDS[policy_type] = card
+        return card
+    return add
+
+
 def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, recipe: dict | None = None,
                 curve: str | None = None):
-    """Model card: architecture, training data and budget, parameter counts, evaluation table;
-    with ``recipe`` (``command`` that reproduces it, ``wall_time_s`` per stage) and ``curve`` (the
+    """The model card of the policy in ``pretrained``, by its type (``MODEL_CARDS``); with
+    ``recipe`` (``command`` that reproduces it, ``wall_time_s`` per stage) and ``curve`` (the
     learning-curve image's file name in the repository) when the main job pushes it."""
+    import json
+
+    config = json.loads((pretrained / POLICY_CONFIG).read_text())
+    card = MODEL_CARDS.get(config.get("type"))
+    if card is None:
+        raise ValueError(f"{pretrained} holds a {config.get('type')!r} policy, which has no model card "
+                         f"(cards: {', '.join(sorted(MODEL_CARDS))})")
+    return card(pretrained, repo_id, config, metrics, recipe, curve)
+
+
+@register_model_card("pdpo")
+def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None = None, recipe: dict | None = None,
+              curve: str | None = None):
+    """PDPO: architecture, training data and budget (pretraining, fine-tuning), parameter counts,
+    then ``card_tail``."""
     import json
 
     from huggingface_hub import ModelCard, ModelCardData
 
     from ..evaluation.parameters import parameter_counts
 
-    config = json.loads((pretrained / "config.json").read_text())
-    if config.get("type") == "crowdnavpp":
-        return crowdnavpp_card(pretrained, repo_id, config, metrics, recipe, curve)
-    train = json.loads((pretrained / "train_config.json").read_text()) if (pretrained / "train_config.json").exists() else {}
-    finetune_path = pretrained / "finetune_config.json"
+    train = json.loads((pretrained / TRAIN_CONFIG).read_text()) if (pretrained / TRAIN_CONFIG).exists() else {}
+    finetune_path = pretrained / FINETUNE_CONFIG
     finetune = json.loads(finetune_path.read_text()) if finetune_path.exists() else None
-    counts = parameter_counts(pretrained / "model.safetensors")
+    counts = parameter_counts(pretrained / WEIGHTS)
     critic_input = (finetune or {}).get("ppo", {}).get("critic_input", "latent")
     dataset = (train.get("dataset") or {}).get("repo_id")
     lines = [
@@ -210,7 +241,7 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef_base']} -> {ppo['clip_ploss_coef']}; "
             "`finetune_config.json` has every setting.",
         ]
-        previous = pretrained / "source_finetune_config.json"
+        previous = pretrained / (SOURCE_PREFIX + FINETUNE_CONFIG)
         if previous.exists():  # this run continued a fine-tuned checkpoint
             prev = json.loads(previous.read_text())
             lines.append(f"- It continued a fine-tuned checkpoint: {prev['env_steps_done']:,} env steps of diffusion PPO "
@@ -232,6 +263,7 @@ CROWDNAVPP_DEAD_HEAD = 514
 CROWDNAVPP_REFERENCE = 2_502_535
 
 
+@register_model_card("crowdnavpp")
 def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None = None,
                     recipe: dict | None = None, curve: str | None = None):
     """Model card of a CrowdNav++ policy trained by lerobot-crowdnav-train-ppo: architecture, the
@@ -242,9 +274,9 @@ def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict 
     from huggingface_hub import ModelCard, ModelCardData
     from safetensors import safe_open
 
-    with safe_open(str(pretrained / "model.safetensors"), "pt") as f:
+    with safe_open(str(pretrained / WEIGHTS), "pt") as f:
         n = sum(math.prod(f.get_slice(k).get_shape()) for k in f.keys())
-    run_path = pretrained / "train_ppo_config.json"
+    run_path = pretrained / TRAIN_PPO_CONFIG
     run = json.loads(run_path.read_text()) if run_path.exists() else None
     lines = [
         f"# {repo_id}", "",
@@ -287,15 +319,14 @@ def push_policy_to_dir(pretrained: str | Path, repo_id: str, hub_dir: str | Path
     import json
 
     pretrained = Path(pretrained)
-    for required in ("config.json", "model.safetensors"):
+    for required in (POLICY_CONFIG, WEIGHTS):
         if not (pretrained / required).exists():
             raise FileNotFoundError(f"{pretrained} is not a pretrained_model directory (no {required})")
     pickles = [p.name for p in pretrained.iterdir() if p.suffix in PICKLE_SUFFIXES]
     if pickles:
         raise ValueError(f"refusing pickled files {pickles}: the hub format holds safetensors only")
     files = [p for p in pretrained.iterdir() if p.is_file() and (
-        p.name in ("config.json", "model.safetensors", "critic.safetensors", "train_config.json", "finetune_config.json",
-                   "source_finetune_config.json", "train_ppo_config.json")
+        p.name in POLICY_FILES
         or (p.name.startswith(("policy_preprocessor", "policy_postprocessor")) and p.suffix in (".json", ".safetensors")))]
     metrics = json.loads(Path(metrics_path).read_text()) if metrics_path else None
     curve = Path(curve) if curve else None

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..layout import SENTINEL, check_sentinel
 from ..sim.config import split_seeds
 from ..sim.envs import CrowdNavVectorEnv
 from .metrics import EpisodeRecord
@@ -28,7 +29,7 @@ class LearnedPolicy:
     slots whose episode just began (``predict_action_chunk(..., episode_start=fresh)``)."""
 
     def __init__(self, path: Path, device: str, obs_dim: int, seed: int = 0, use_ema: bool = True,
-                 ddim_steps: int | None = None):
+                 ddim_steps: int | None = None, sentinel: float = SENTINEL):
         import torch
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -44,6 +45,7 @@ class LearnedPolicy:
         if state is None or tuple(state.shape) != (obs_dim,):
             raise ValueError(f"policy at {path} expects observation.state of shape "
                              f"{None if state is None else tuple(state.shape)}, the env gives ({obs_dim},)")
+        check_sentinel(cfg, sentinel)
         if ddim_steps is not None:
             if not hasattr(cfg, "ddim_steps"):
                 raise ValueError(f"--policy.ddim_steps is for PDPO; {path} is a {cfg.type!r} policy")

@@ -132,7 +132,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         if cfg.policy.path is None:
             raise ValueError("--policy.type=pretrained needs --policy.path")
         actor = LearnedPolicy(cfg.policy.path, cfg.policy.device, sim_cfg.obs_dim, cfg.policy.seed, cfg.policy.use_ema,
-                              cfg.policy.ddim_steps)
+                              cfg.policy.ddim_steps, sim_cfg.sentinel)
     start = time.perf_counter()
     records = run_episodes(env, actor, cfg.eval.split, cfg.eval.n_episodes, label=policy)
     elapsed = time.perf_counter() - start

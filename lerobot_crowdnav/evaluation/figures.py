@@ -41,7 +41,7 @@ def record_snapshots(policy_path: str | Path, sim_cfg: CrowdSimConfig, seed: int
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1, got {n_samples}")
     sim_cfg = sim_cfg.resolve()
-    actor = LearnedPolicy(Path(policy_path), device, sim_cfg.obs_dim, policy_seed)
+    actor = LearnedPolicy(Path(policy_path), device, sim_cfg.obs_dim, policy_seed, sentinel=sim_cfg.sentinel)
     extra = torch.Generator(device=device).manual_seed(policy_seed + 1)
     env = CrowdNavEnv(config=sim_cfg)
     obs, _ = env.reset(seed=seed)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ..checkpoint_files import CRITIC
+
 
 def parameter_counts(weights: Path) -> dict[str, int]:
     """Actor and critic sizes of a PDPO checkpoint: the actor in ``model.safetensors``, the
@@ -13,7 +15,7 @@ def parameter_counts(weights: Path) -> dict[str, int]:
     from safetensors import safe_open
 
     counts = {"actor": 0, "critic": 0}
-    critic_file = Path(weights).with_name("critic.safetensors")
+    critic_file = Path(weights).with_name(CRITIC)
     for path, critic_prefix in ((Path(weights), "value."), (critic_file, "")):
         if not path.exists():
             continue

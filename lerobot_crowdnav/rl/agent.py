@@ -13,7 +13,15 @@ An actor-critic is an ``nn.Module`` with
   tensors ``(L, M, ...)`` of M sequences of L steps (flat minibatches: L = 1), ``memory`` their
   initial memory ``(M, ...)`` or None, ``episode_start (L, M)`` where memory restarts;
 * ``value(obs, memory) -> Tensor (B,)`` - V of raw observations (bootstraps);
-* ``param_groups() -> {"actor": [...], "critic": [...]}`` - one optimizer each.
+* ``n_parts: int`` - the n of ``Scores.logp``: the parts a decision is scored as (a Gaussian: 1,
+  diffusion PPO: K'); the PPO settings give one clip and one advantage weight per part;
+* ``param_groups() -> {"actor": [...], "critic": [...]}`` - one optimizer each: "actor" the
+  parameters the policy loss trains (with whatever they share with the critic), "critic" (may be
+  absent: a shared trunk) those only the value loss trains, the ones a critic warm-up updates;
+* ``save(path)`` - write the policy as a lerobot ``pretrained_model`` directory (what the next
+  run's or ``lerobot-crowdnav-eval``'s ``--policy.path`` loads), plus any RL-side state it needs.
+
+``check_actor_critic`` checks an agent against this where a run builds it.
 
 Everything the env side sees is raw (obs and actions in env units): normalization, chunking or
 denoising chains are the actor-critic's own business.
@@ -26,6 +34,9 @@ from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
+
+from ..checkpoint_files import POLICY_CONFIG
+from ..layout import check_sentinel
 
 
 class Step(NamedTuple):
@@ -42,8 +53,12 @@ class Scores(NamedTuple):
     entropy: Tensor | None  # (L, M) where the policy has a closed form; None otherwise
 
 
+ACTOR, CRITIC = "actor", "critic"  # the parameter groups (one optimizer each)
+
+
 class ActorCritic(Protocol):
     recurrent: bool
+    n_parts: int
 
     def initial_memory(self, num_envs: int) -> Tensor | None: ...
 
@@ -54,6 +69,30 @@ class ActorCritic(Protocol):
     def value(self, obs: Tensor, memory: Tensor | None) -> Tensor: ...
 
     def param_groups(self) -> dict[str, list[torch.nn.Parameter]]: ...
+
+    def save(self, path: Path) -> None: ...
+
+
+def check_actor_critic(agent, ppo) -> None:
+    """``agent`` has every member of ``ActorCritic``, its parameter groups are "actor" and
+    optionally "critic", and the PPO settings ``ppo`` fit it (one clip and weight per scored part;
+    a critic warm-up needs critic-only parameters): a clear error otherwise, before any rollout."""
+    members = [*ActorCritic.__annotations__, *(n for n in vars(ActorCritic) if callable(getattr(ActorCritic, n))
+                                              and not n.startswith("_"))]
+    if missing := [m for m in members if not hasattr(agent, m)]:
+        raise TypeError(f"{type(agent).__name__} is not an actor-critic (rl/agent.py): it lacks {', '.join(missing)}")
+    groups = agent.param_groups()
+    if ACTOR not in groups or not set(groups) <= {ACTOR, CRITIC}:
+        raise TypeError(f"{type(agent).__name__}.param_groups() gives {sorted(groups)}: expected {ACTOR!r} and "
+                        f"optionally {CRITIC!r}")
+    for name, per_part in (("clip_per_part", ppo.clip_per_part()), ("advantage_weights", ppo.advantage_weights())):
+        if per_part.shape != (agent.n_parts,):
+            raise ValueError(f"the PPO settings' {name} has shape {per_part.shape}; {type(agent).__name__} scores a "
+                             f"decision as {agent.n_parts} part(s)")
+    if ppo.n_critic_warmup_itr and CRITIC not in groups:
+        raise ValueError(f"--ppo.n_critic_warmup_itr={ppo.n_critic_warmup_itr}: {type(agent).__name__} has no "
+                         "critic-only parameters (actor and critic share them), so a warm-up would train nothing; "
+                         "set it to 0")
 
 
 def read_policy_config(path: Path, kind: str, purpose: str):
@@ -66,9 +105,9 @@ def read_policy_config(path: Path, kind: str, purpose: str):
     from lerobot.utils.import_utils import register_third_party_plugins
 
     path = Path(path)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
-    found = json.loads((path / "config.json").read_text()).get("type")
+    if not (path / POLICY_CONFIG).exists():
+        raise FileNotFoundError(f"--policy.path={path}: no {POLICY_CONFIG} (expected a pretrained_model directory)")
+    found = json.loads((path / POLICY_CONFIG).read_text()).get("type")
     if found != kind:
         raise ValueError(f"--policy.path={path} holds a {found!r} policy; {purpose}")
     register_third_party_plugins()
@@ -78,10 +117,12 @@ def read_policy_config(path: Path, kind: str, purpose: str):
 
 
 def check_observation_layout(policy_cfg, sim_cfg) -> None:
-    """A policy config (num_humans, prediction_steps, state_dim) must read the env's observations."""
+    """A policy config (num_humans, prediction_steps, state_dim, a sentinel it knows) must read
+    the env's observations."""
     cfg = policy_cfg
     if (cfg.num_humans, cfg.prediction_steps) != (sim_cfg.num_humans, sim_cfg.prediction_steps) \
             or cfg.state_dim != sim_cfg.obs_dim:
         raise ValueError(f"the policy reads {cfg.state_dim}-float observations ({cfg.num_humans} humans, "
                          f"{cfg.prediction_steps} prediction steps); the env gives {sim_cfg.obs_dim} "
                          f"({sim_cfg.num_humans} humans, {sim_cfg.prediction_steps} prediction steps)")
+    check_sentinel(cfg, sim_cfg.sentinel)

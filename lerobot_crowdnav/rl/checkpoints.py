@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from .. import fault
+from ..checkpoint_files import BEST_INFO
 
 # Settings that must not change when a run is resumed.
 RESUME_KEYS = ("env", "num_envs", "ppo", "seed", "env_seed")
@@ -89,7 +90,7 @@ class Checkpoints:
         staging = self.root / ".best.tmp"
         shutil.rmtree(staging, ignore_errors=True)
         save_policy(staging / "pretrained_model")
-        (staging / "best.json").write_text(json.dumps(info, indent=2))
+        (staging / BEST_INFO).write_text(json.dumps(info, indent=2))
         fault.replace_dir(staging, self.root / "best")
 
     def load_shared(self) -> dict:

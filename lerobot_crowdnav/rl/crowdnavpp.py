@@ -10,12 +10,13 @@ exploration, the sequence scoring and reading/writing training checkpoints.
     Scores.entropy   (L, M)     of the Gaussian, summed over the 2 dims
 
 Actor and critic share the trunk (robot embedding, attentions, GRU), so there is one parameter
-group, "actor": one Adam and one global gradient-norm clip, as the reference trains it (set
-``n_critic_warmup_itr=0``: a warm-up would freeze the whole network).
+group, "actor": one Adam and one global gradient-norm clip, as the reference trains it (no
+critic-only parameters, so a critic warm-up is refused: ``n_critic_warmup_itr=0``).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -24,12 +25,40 @@ from torch import Tensor, nn
 
 from ..sim.config import CrowdSimConfig
 from .agent import Scores, Step, check_observation_layout, read_policy_config
+from .config import PPOConfig
+from .families import Family, register
+
+
+@dataclass
+class CrowdNavPPPPOConfig(PPOConfig):
+    """CrowdNav++'s PPO (reference arguments.py / ppo.py): one Adam, lr 4e-5, eps 1e-5; 30-step
+    rollouts; 5 epochs of 2 minibatches (240 steps = 8 whole 30-step sequences of 16 envs); clip
+    0.2; clipped value loss, coefficient 0.5; no entropy bonus; gradient norm 0.5; gamma 0.99,
+    GAE lambda 0.95; advantages normalized once over the rollout; timeouts terminal; raw rewards;
+    no KL stop and no critic warm-up (the trunk is shared). Class defaults, not a factory: draccus
+    builds ``--ppo.*`` from the class's defaults."""
+
+    n_steps: int = 30
+    batch_size: int = 240
+    update_epochs: int = 5
+    actor_lr: float = 4e-5
+    critic_lr: float = 4e-5  # unused: one parameter group ("actor")
+    clip_ploss_coef: float = 0.2
+    vf_coef: float = 0.5
+    target_kl: float = 0.0
+    reward_scale_running: bool = False
+    n_critic_warmup_itr: int = 0
+    max_grad_norm: float = 0.5
+    adam_eps: float = 1e-5
+    clip_vloss: bool = True
+    norm_adv: str = "rollout"
+    bootstrap_timeouts: bool = False
 
 
 class CrowdNavPPAgent(nn.Module):
     """The actor-critic protocol for a CrowdNav++ policy. Recurrent."""
 
-    recurrent = True
+    recurrent, n_parts = True, 1
 
     def __init__(self, policy: CrowdNavPPPolicy):
         super().__init__()
@@ -102,3 +131,13 @@ def load_agent(path: Path) -> CrowdNavPPAgent:
 
 def check_compatible(policy: CrowdNavPPPolicy, sim_cfg: CrowdSimConfig) -> None:
     check_observation_layout(policy.config, sim_cfg)
+
+
+def build_agent(source: Path | None, sim_cfg: CrowdSimConfig, seed: int) -> CrowdNavPPAgent:
+    agent = make_agent(sim_cfg, seed) if source is None else load_agent(source)
+    check_compatible(agent.policy, sim_cfg)
+    return agent
+
+
+# The reference's run: 16 envs (its 16 processes), 10 M env steps (holonomic robot), seed 425.
+register(Family("crowdnavpp", build_agent, CrowdNavPPPPOConfig, {"num_envs": 16, "env_steps": 10_000_000, "seed": 425}))

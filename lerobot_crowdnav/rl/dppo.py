@@ -27,13 +27,13 @@ from lerobot_policy_pdpo.modeling_pdpo import DiffusionActor, PDPOPolicy, mlp
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
+from ..checkpoint_files import CRITIC, WEIGHTS
 from ..layout import obs_dim
 from ..sim.config import CrowdSimConfig
 from .agent import Scores, Step, check_observation_layout, read_policy_config
 from .config import DiffusionPPOConfig
 
 OBS = "observation.state"
-CRITIC_FILE = "critic.safetensors"
 
 
 class ValueHead(nn.Module):
@@ -86,6 +86,7 @@ class DiffusionPPOAgent(nn.Module):
         super().__init__()
         self.policy, self.critic = policy, critic
         self.pre, self.post, self.cfg = pre, post, cfg
+        self.n_parts = policy.config.ft_denoising_steps  # K' transitions per decision
         if cfg.freeze_encoder:
             base = policy.base.encoder.state_dict() if policy.base is not None else {}
             if any(not torch.equal(v, base[k]) for k, v in policy.actor.encoder.state_dict().items() if k in base):
@@ -137,7 +138,7 @@ class DiffusionPPOAgent(nn.Module):
         self.policy.save_pretrained(path)
         self.pre.save_pretrained(path)
         self.post.save_pretrained(path)
-        save_file({k: v.contiguous() for k, v in self.critic.state_dict().items()}, str(Path(path) / CRITIC_FILE))
+        save_file({k: v.contiguous() for k, v in self.critic.state_dict().items()}, str(Path(path) / CRITIC))
 
 
 def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAgent:
@@ -180,9 +181,9 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
 
 
 def _saved_critic(path: Path) -> dict[str, Tensor]:
-    if (path / CRITIC_FILE).exists():
-        return load_file(str(path / CRITIC_FILE))
-    legacy = load_file(str(path / "model.safetensors"))  # written before the actor/critic split
+    if (path / CRITIC).exists():
+        return load_file(str(path / CRITIC))
+    legacy = load_file(str(path / WEIGHTS))  # written before the actor/critic split
     return {k.removeprefix("value."): v for k, v in legacy.items() if k.startswith("value.")}
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..checkpoint_files import FINETUNE_CONFIG
 from ..cli import run_cli
 from ..sim.config import CrowdSimConfig
 from .config import DiffusionPPOConfig
@@ -22,8 +23,6 @@ from .dppo import check_compatible, load_agent
 from .trainer import PPORunConfig, ValidationConfig, WandBConfig, crossed, run_ppo
 
 __all__ = ["FinetuneConfig", "PolicySource", "ValidationConfig", "WandBConfig", "crossed", "finetune", "main"]
-
-CONFIG_NAME = "finetune_config.json"
 
 
 @dataclass
@@ -54,7 +53,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
         check_compatible(agent.policy, sim_cfg)
         return agent
 
-    return run_ppo(cfg, build_agent, cfg.policy.path, command="finetune", config_name=CONFIG_NAME,
+    return run_ppo(cfg, build_agent, cfg.policy.path, command="finetune", config_name=FINETUNE_CONFIG,
                    label="diffusion PPO", done="fine-tuned")
 
 

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..sim.engine import EVENT_NAMES
+from .agent import CRITIC
 from .config import PPOConfig
 from .ppo import RunningRewardScaler, explained_variance, gae, normalize_advantages, ppo_losses
 
@@ -186,6 +187,9 @@ def update(model, agent, ro: Rollout, cfg: PPOConfig, optimizers: dict[str, torc
         idx = torch.as_tensor(first_perm[i:i + mb], device=device)
         scores = agent(*cols[idx])
         if old_logp is None:
+            if scores.logp.shape[-1] != agent.n_parts:  # the clip and weights above have n_parts entries
+                raise ValueError(f"{type(agent).__name__} scored a decision as {scores.logp.shape[-1]} parts, "
+                                 f"not its n_parts={agent.n_parts}")
             old_logp = torch.empty(scores.logp.shape[0], cols.n, scores.logp.shape[2], device=device)
             values = torch.empty(scores.value.shape[0], cols.n, device=device)
         old_logp[:, idx], values[:, idx] = scores.logp.detach(), scores.value.detach()
@@ -220,7 +224,7 @@ def update(model, agent, ro: Rollout, cfg: PPOConfig, optimizers: dict[str, torc
                 for opt in optimizers.values():
                     accelerator.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], cfg.max_grad_norm)
             for name, opt in optimizers.items():
-                if train_actor or name != "actor":
+                if train_actor or name == CRITIC:
                     opt.step()
             if new.entropy is not None:
                 losses["entropy"] = new.entropy.mean().detach()

@@ -1,4 +1,5 @@
-"""PPO from scratch of an actor-critic policy (CrowdNav++): ``lerobot-crowdnav-train-ppo``.
+"""PPO from scratch of an actor-critic policy (CrowdNav++ or any registered family):
+``lerobot-crowdnav-train-ppo``.
 
     lerobot-crowdnav-train-ppo --policy.type=crowdnavpp --env.task=CrowdNav-v0 --env.preset=crowdnavpp \\
         --output_dir=outputs/train_ppo/crowdnavpp_original
@@ -6,57 +7,34 @@
     accelerate launch --num_processes=2 -m lerobot_crowdnav.rl.train_ppo ...   # DDP, one env batch per process
 
 The run is the shared PPO run (rl/trainer.py: collect, update, validation, checkpoints, resume,
-logs, DDP) with the policy's agent (rl/crowdnavpp.py); the defaults are CrowdNav++'s PPO
-(docs/crowdnavpp.md). Note the two meanings of "crowdnavpp": ``--policy.type=crowdnavpp`` is the
-network, ``--env.preset=crowdnavpp`` the simulator's scene (robot radius 0.3 m, 5 m sensing).
+logs, DDP) with the agent of the ``--policy.type`` family (rl/families.py), whose recipe gives the
+defaults (CrowdNav++'s: docs/crowdnavpp.md). Note the two meanings of "crowdnavpp":
+``--policy.type=crowdnavpp`` is the network, ``--env.preset=crowdnavpp`` the simulator's scene
+(robot radius 0.3 m, 5 m sensing).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..cli import run_cli
-from ..sim.config import CrowdSimConfig
-from .config import PPOConfig
+from ..checkpoint_files import TRAIN_PPO_CONFIG
+from ..cli import USER_ERRORS, run_cli
+from . import families
 from .trainer import PPORunConfig, run_ppo
 
-CONFIG_NAME = "train_ppo_config.json"
-POLICY_TYPES = ("crowdnavpp",)
-
-
-@dataclass
-class CrowdNavPPPPOConfig(PPOConfig):
-    """CrowdNav++'s PPO (reference arguments.py / ppo.py): one Adam, lr 4e-5, eps 1e-5; 30-step
-    rollouts; 5 epochs of 2 minibatches (240 steps = 8 whole 30-step sequences of 16 envs); clip
-    0.2; clipped value loss, coefficient 0.5; no entropy bonus; gradient norm 0.5; gamma 0.99,
-    GAE lambda 0.95; advantages normalized once over the rollout; timeouts terminal; raw rewards;
-    no KL stop and no critic warm-up (the trunk is shared). Class defaults, not a factory: draccus
-    builds ``--ppo.*`` from the class's defaults."""
-
-    n_steps: int = 30
-    batch_size: int = 240
-    update_epochs: int = 5
-    actor_lr: float = 4e-5
-    critic_lr: float = 4e-5  # unused: one parameter group ("actor")
-    clip_ploss_coef: float = 0.2
-    vf_coef: float = 0.5
-    target_kl: float = 0.0
-    reward_scale_running: bool = False
-    n_critic_warmup_itr: int = 0
-    max_grad_norm: float = 0.5
-    adam_eps: float = 1e-5
-    clip_vloss: bool = True
-    norm_adv: str = "rollout"
-    bootstrap_timeouts: bool = False
+DEFAULT_TYPE = "crowdnavpp"
 
 
 @dataclass
 class PolicyChoice:
-    # The policy trained from scratch: crowdnavpp (CrowdNav++'s attention-graph recurrent network,
-    # the lerobot plugin lerobot_policy_crowdnavpp). Its sizes are the reference's; its crowd
-    # layout (humans, prediction steps) follows --env.
-    type: str = "crowdnavpp"
+    # The policy trained from scratch: a registered family (rl/families.py), by default crowdnavpp
+    # (CrowdNav++'s attention-graph recurrent network, the lerobot plugin lerobot_policy_crowdnavpp;
+    # its sizes are the reference's, its crowd layout follows --env). The family's recipe gives the
+    # defaults of --ppo.*, --num_envs, --env_steps and --seed.
+    type: str = DEFAULT_TYPE
     # Start from this pretrained_model directory of the same type instead of fresh weights.
     path: Path | None = None
 
@@ -64,36 +42,54 @@ class PolicyChoice:
 @dataclass
 class TrainPPOConfig(PPORunConfig):
     policy: PolicyChoice = field(default_factory=PolicyChoice)
-    # Envs stepped together by each process (reference: 16 processes).
-    num_envs: int = 16
-    # Budget in environment steps, all processes together (reference: 10 M for the holonomic robot).
-    env_steps: int = 10_000_000
-    ppo: CrowdNavPPPPOConfig = field(default_factory=CrowdNavPPPPOConfig)
-    # Reference seed.
-    seed: int = 425
 
     def validate(self, world_size: int = 1) -> None:
         super().validate(world_size)
-        if self.policy.type not in POLICY_TYPES:
-            raise ValueError(f"--policy.type={self.policy.type!r}: PPO from scratch trains {', '.join(POLICY_TYPES)} "
-                             "(PDPO is fine-tuned by lerobot-crowdnav-finetune)")
+        families.get(self.policy.type)
+
+
+def config_class(family: families.Family) -> type[TrainPPOConfig]:
+    """``TrainPPOConfig`` with ``family``'s recipe as its defaults: draccus builds the flags, and
+    the resume check the defaults of settings a saved run lacks, from the class. It keeps the
+    name, so that draccus finds the flags' help in the source of its bases."""
+    fields = [("policy", PolicyChoice, field(default_factory=lambda: PolicyChoice(family.name))),
+              ("ppo", family.ppo, field(default_factory=family.ppo)),
+              *((name, type(value), value) for name, value in family.run_defaults.items())]
+    return dataclasses.make_dataclass("TrainPPOConfig", fields, bases=(TrainPPOConfig,))
+
+
+def policy_type(argv: list[str]) -> str:
+    """The ``--policy.type`` of ``argv``, else of its ``--config_path`` file, else the default:
+    the family whose config class parses the command line."""
+    import yaml
+
+    found, args = {}, iter(argv)
+    for arg in args:
+        key, eq, value = arg.partition("=")
+        if key in ("--policy.type", "--config_path"):
+            found[key] = value if eq else next(args, "")
+    if "--policy.type" in found:
+        return found["--policy.type"]
+    if "--config_path" in found:
+        saved = yaml.safe_load(Path(found["--config_path"]).read_text()) or {}
+        return (saved.get("policy") or {}).get("type", DEFAULT_TYPE)
+    return DEFAULT_TYPE
 
 
 def train_ppo(cfg: TrainPPOConfig) -> dict:
     """One process (rank) of the run (rl/trainer.py ``run_ppo``)."""
-    from .crowdnavpp import check_compatible, load_agent, make_agent
-
-    def build_agent(source: Path | None, sim_cfg: CrowdSimConfig):
-        agent = make_agent(sim_cfg, cfg.seed) if source is None else load_agent(source)
-        check_compatible(agent.policy, sim_cfg)
-        return agent
-
-    return run_ppo(cfg, build_agent, cfg.policy.path, command="train_ppo", config_name=CONFIG_NAME,
-                   label=f"PPO {cfg.policy.type}", done="trained")
+    family = families.get(cfg.policy.type)
+    return run_ppo(cfg, lambda source, sim_cfg: family.build_agent(source, sim_cfg, cfg.seed), cfg.policy.path,
+                   command="train_ppo", config_name=TRAIN_PPO_CONFIG, label=f"PPO {family.name}", done="trained")
 
 
 def main(argv: list[str] | None = None) -> None:
-    run_cli(TrainPPOConfig, train_ppo, argv, "rerun the same command with --resume=true to continue from the last checkpoint")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        family = families.get(policy_type(argv))
+    except USER_ERRORS as e:
+        raise SystemExit(f"error: {e}") from None
+    run_cli(config_class(family), train_ppo, argv, "rerun the same command with --resume=true to continue from the last checkpoint")
 
 
 if __name__ == "__main__":

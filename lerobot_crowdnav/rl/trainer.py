@@ -23,9 +23,11 @@ import torch
 from tqdm import tqdm
 
 from .. import fault
+from ..checkpoint_files import SOURCE_PREFIX, TRAIN_CONFIG
 from ..cli import deferred_interrupt
-from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.config import PPO_ENV_SEED, PPO_PROCESS_SEEDS, SEED_SPLITS, CrowdSimConfig
 from ..sim.envs import CrowdNavVectorEnv
+from .agent import ACTOR, CRITIC, check_actor_critic
 from .checkpoints import Checkpoints, resume_conflicts
 from .config import PPOConfig
 from .loop import Collector, update
@@ -36,8 +38,7 @@ from .validation import episode_stats, validate
 # Files of the source checkpoint carried into every checkpoint (provenance: lerobot-train's
 # record); a source written by a PPO run also passes on its run's settings as
 # ``source_<config_name>`` (a run that continues another one).
-CARRIED_FILES = ("train_config.json",)
-SOURCE_PREFIX = "source_"
+CARRIED_FILES = (TRAIN_CONFIG,)
 
 
 @dataclass
@@ -76,8 +77,8 @@ class PPORunConfig:
     # Seed of the policy's sampling noise, the fresh networks' initialization and the minibatch order.
     seed: int = 1000
     # First train-split episode seed of process 0; process r starts at env_seed + r * 10,000,000
-    # (the ORCA demonstrations use seeds from 0).
-    env_seed: int = 500_000_000
+    # (the ORCA demonstrations use seeds from 0; sim/config.py has every block).
+    env_seed: int = PPO_ENV_SEED
     # Torch device; default: cuda when available, else cpu.
     device: str | None = None
     # Where checkpoints and logs go (default: outputs/<command>/<task>_<preset>).
@@ -99,8 +100,8 @@ class PPORunConfig:
         if not 1 <= self.val.n_episodes <= val_size:
             raise ValueError(f"--val.n_episodes must be in [1, {val_size}], got {self.val.n_episodes}")
         lo, hi = SEED_SPLITS["train"]
-        if not (lo <= self.env_seed and self.env_seed + world_size * 10_000_000 <= hi):
-            raise ValueError(f"--env_seed must leave {world_size} blocks of 10,000,000 train seeds below {hi}")
+        if not (lo <= self.env_seed and self.env_seed + world_size * PPO_PROCESS_SEEDS <= hi):
+            raise ValueError(f"--env_seed must leave {world_size} blocks of {PPO_PROCESS_SEEDS:,} train seeds below {hi}")
         if self.wandb.mode not in ("offline", "online", "disabled"):
             raise ValueError(f"--wandb.mode must be offline, online or disabled, got {self.wandb.mode!r}")
 
@@ -117,7 +118,7 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
             start_from: Path | None, *, command: str, config_name: str, label: str, done: str) -> dict:
     """One process (rank) of a PPO run; rank 0 also validates, logs and saves the shared parts.
 
-    ``build_agent(source, sim_cfg)``: the actor-critic (rl/agent.py, with ``save(path)``) on cpu,
+    ``build_agent(source, sim_cfg)``: the actor-critic (rl/agent.py; checked here) on cpu,
     from a pretrained_model directory (``start_from``, or the last checkpoint when resuming) or
     None (``start_from`` was None: a fresh agent, or an error if the CLI needs a source).
     ``config_name``: the run's settings file beside each checkpoint's policy (resume reads it);
@@ -150,8 +151,9 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
 
     # -- the parts: agent, optimizers, envs, collector -------------------------------------------
     agent = build_agent(source, sim_cfg)
+    check_actor_critic(agent, cfg.ppo)
     agent = agent.to(acc.device).eval()  # eval: no dropout, so rollout and update agree
-    lrs = {"actor": cfg.ppo.actor_lr, "critic": cfg.ppo.critic_lr}
+    lrs = {ACTOR: cfg.ppo.actor_lr, CRITIC: cfg.ppo.critic_lr}
     optimizers = {name: torch.optim.AdamW(params, lr=lrs[name], weight_decay=cfg.ppo.weight_decay, eps=cfg.ppo.adam_eps)
                   for name, params in agent.param_groups().items()}
     model, *opts = acc.prepare(agent, *optimizers.values())
@@ -182,7 +184,7 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
         (state / f"rng_rank{r}.json").write_text(json.dumps(
             {"numpy": rng.bit_generator.state, **collector.state_dict(), "obs_shape": list(collector.obs.shape)}))
 
-    collector.reset(cfg.env_seed + rank * 10_000_000)
+    collector.reset(cfg.env_seed + rank * PPO_PROCESS_SEEDS)
     if resumed:
         shared = ckpts.load_shared()
         for name, opt in optimizers.items():

@@ -8,9 +8,10 @@ import torch
 
 from ..evaluation.episodes import run_episodes
 from ..evaluation.metrics import compute_metrics
+from ..sim.engine import EVENT_NAMES
 from .loop import restart_memory
 
-EVENTS = ("success", "human_collision", "wall_collision", "timeout")
+EVENTS = EVENT_NAMES[1:]  # how an episode ends (not "running")
 
 
 def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> dict[str, float]:
@@ -40,6 +41,6 @@ def episode_stats(episodes: list[dict], accelerator) -> dict[str, float]:
     c = accelerator.reduce(counts, reduction="sum").cpu().tolist()
     if not c[0]:
         return {"train/episodes": 0}
-    return {"train/episodes": int(c[0]), "train/success_rate": c[1] / c[0], "train/human_collision_rate": c[2] / c[0],
-            "train/wall_collision_rate": c[3] / c[0], "train/timeout_rate": c[4] / c[0],
-            "train/episode_return": c[5] / c[0], "train/episode_length": c[6] / c[0]}
+    n, *events, ret, length = c
+    return {"train/episodes": int(n), **{f"train/{ev}_rate": k / n for ev, k in zip(EVENTS, events, strict=True)},
+            "train/episode_return": ret / n, "train/episode_length": length / n}

@@ -8,7 +8,7 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import NormalizationMode
 from lerobot.optim.optimizers import AdamWConfig
 
-from lerobot_crowdnav.layout import check_policy_features, obs_dim
+from lerobot_crowdnav.layout import SENTINEL, check_policy_features, obs_dim
 
 
 @PreTrainedConfig.register_subclass("pdpo")
@@ -31,7 +31,7 @@ class PDPOConfig(PreTrainedConfig):
     num_humans: int = 20
     prediction_steps: int = 5
     # Value that fills the rows of invisible humans in observation.state (lerobot-crowdnav: 15).
-    sentinel_value: float = 15.0
+    sentinel_value: float = SENTINEL
     # MEAN_STD for the state (human-row statistics recomputed without the sentinel rows, see
     # processor_pdpo), MIN_MAX for actions: [-1, 1].
     normalization_mapping: dict[str, NormalizationMode] = field(
