@@ -136,8 +136,8 @@ def test_val_split_takes_val_seeds(tmp_path, capsys):
     result = _eval(tmp_path / "val", "--eval.split=val", n_episodes=2, batch_size=2, policy="straight")
     assert [e["seed"] for e in result["episodes"]] == split_seeds("val", 2)
     with pytest.raises(SystemExit) as exc:
-        _eval(tmp_path / "val101", "--eval.split=val", n_episodes=101, policy="straight")
-    assert "[1, 100]" in str(exc.value.code)
+        _eval(tmp_path / "val1001", "--eval.split=val", n_episodes=1001, policy="straight")
+    assert "[1, 1000]" in str(exc.value.code)
 
 
 def test_module_help_mentions_every_setting():
