@@ -95,3 +95,27 @@ def test_cli_merges_repeated_paths_and_reports_bad_input_in_one_line():
         probe_mod.main(["--every=x"])
     with pytest.raises(SystemExit, match="^error: --policy.path=nowhere: no config.json"):
         probe_mod.main(["--policy.path=nowhere", "--episodes=1"])
+
+
+def test_imitation_table_reads_the_runs_files(tmp_path):
+    """scripts/imitation_table.py: Wilson intervals from the metrics files, the test split's
+    outcomes and the probe's figures of the named policy, in the header's order."""
+    spec_t = importlib.util.spec_from_file_location("imitation_table", Path(__file__).parents[1] / "scripts/imitation_table.py")
+    table_mod = sys.modules[spec_t.name] = importlib.util.module_from_spec(spec_t)
+    spec_t.loader.exec_module(table_mod)
+    import json
+
+    for split, sr in (("val", 0.5), ("test", 0.662)):
+        (tmp_path / f"{split}.json").write_text(json.dumps(
+            {"sr": sr, "n_episodes": {"val": 100, "test": 500}[split], "cr_human": 0.2, "cr_wall": 0.1, "tr": 0.038}))
+    (tmp_path / "probe.json").write_text(json.dumps(
+        {"policies": {"DIR": {"velocity_follow": 0.0449, "goal_turn_deg": 12.46}}}))
+    manifest = {"rows": [{"label": "masked", "val": str(tmp_path / "val.json"), "test": str(tmp_path / "test.json"),
+                          "probe": str(tmp_path / "probe.json"), "probe_policy": "DIR", "cost": "30,000 steps"},
+                         {"label": "no val, no probe", "test": str(tmp_path / "test.json")}]}
+    lines = table_mod.table(manifest).splitlines()
+    assert lines[0].startswith("| remedy | val SR (%) [95 % CI] | test SR (%) [95 % CI] |")
+    assert lines[2] == "| masked | 50.0 [40.4, 59.6] | 66.2 [61.9, 70.2] | 20.0 | 10.0 | 3.8 | 0.04 | 12.5 | 30,000 steps |"
+    assert lines[3] == "| no val, no probe | n/a | 66.2 [61.9, 70.2] | 20.0 | 10.0 | 3.8 | n/a | n/a |  |"
+    with pytest.raises(SystemExit, match="^error: --manifest"):
+        table_mod.main([f"--manifest={tmp_path / 'missing.json'}"])
