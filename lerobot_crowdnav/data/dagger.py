@@ -24,7 +24,6 @@ own (``DAGGER_SEED_BASE + round * 1,000,000``, train split); ``meta/crowdnav_col
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from dataclasses import dataclass
@@ -138,11 +137,6 @@ def learner_round(sim: CrowdSim, policy, seeds: list[int], every: int, horizon: 
     return snippets, events
 
 
-def _round_committed(writer: DemonstrationWriter, round_: int) -> bool:
-    lo = DAGGER_SEED_BASE + round_ * ROUND_SEEDS
-    return any(lo <= row["seed"] < lo + ROUND_SEEDS for block in writer.committed_blocks() for row in block)
-
-
 def dagger(cfg: DaggerConfig) -> dict:
     from ..evaluation.episodes import LearnedPolicy
 
@@ -159,10 +153,10 @@ def dagger(cfg: DaggerConfig) -> dict:
     horizon = cfg.horizon or policy_cfg.get("horizon", 1)
     first_seed = DAGGER_SEED_BASE + cfg.round * ROUND_SEEDS
     start = time.perf_counter()
-    first_episode = writer.info.total_episodes
-    if _round_committed(writer, cfg.round):  # committed, then interrupted before its record
-        first_episode = min(row["episode_index"] for block in writer.committed_blocks() for row in block
-                            if first_seed <= row["seed"] < first_seed + ROUND_SEEDS)
+    committed = [row["episode_index"] for block in writer.committed_blocks() for row in block
+                 if first_seed <= row["seed"] < first_seed + ROUND_SEEDS]
+    first_episode = min(committed, default=writer.info.total_episodes)
+    if committed:  # committed, then interrupted before its record
         snippets, events = None, None
     else:
         sim = CrowdSim(sim_cfg, min(cfg.batch_size, cfg.episodes))
