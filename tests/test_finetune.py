@@ -91,7 +91,8 @@ def test_running_reward_scaler_divides_by_the_return_std_and_resets_on_done():
 
 
 # -- chain log-probabilities -------------------------------------------------------------------
-def test_chain_log_prob_equals_an_independent_computation():
+@pytest.mark.parametrize("actions", [None, 1, 3])
+def test_chain_log_prob_equals_an_independent_computation(actions):
     cfg = small_pdpo_config(ft_denoising_steps=4, use_ema=False)
     torch.manual_seed(1)
     policy = PDPOPolicy(cfg).eval()
@@ -100,7 +101,7 @@ def test_chain_log_prob_equals_an_independent_computation():
     chain = policy.sample_chain(state, generator=torch.Generator().manual_seed(0), exploration_std=0.1)
     assert chain.shape == (3, 5, 5, 2)
     z = policy.actor.encoder(state)
-    logp = transition_log_prob(policy.actor, z, chain, min_std=0.1)
+    logp = transition_log_prob(policy.actor, z, chain, min_std=0.1, actions=actions)
 
     # Independent: the schedule from its formula in float64, the Gaussian density written out.
     K = cfg.num_diffusion_steps
@@ -119,7 +120,7 @@ def test_chain_log_prob_equals_an_independent_computation():
         mean = (betas[k] * math.sqrt(abar_prev[k]) * x0 + (1 - abar_prev[k]) * math.sqrt(1 - betas[k]) * xk) / (1 - abar[k])
         std = max(math.sqrt(betas[k] * (1 - abar_prev[k]) / (1 - abar[k])), 0.1)
         dens = -((chain[:, i + 1].double() - mean) ** 2) / (2 * std**2) - math.log(std) - 0.5 * math.log(2 * math.pi)
-        expected[:, i] = dens.clamp(-5, 2).mean(dim=(1, 2)).detach().numpy()
+        expected[:, i] = dens.clamp(-5, 2)[:, : actions or cfg.horizon].mean(dim=(1, 2)).detach().numpy()
     np.testing.assert_allclose(logp.detach().numpy(), expected, rtol=1e-4, atol=1e-5)
 
 
@@ -272,6 +273,29 @@ def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp
     assert any(not torch.equal(a, b) for a, b in zip(trained.parameters(), fresh.parameters(), strict=True))
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", f"--output_dir={tmp_path / 'eval'}"])
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
+
+
+def test_executed_log_probabilities_read_the_first_action_only(pretrained):
+    """--ppo.logprob_actions=executed scores a chunk's transitions on its first (executed) action:
+    changing the later actions of the final sample x_0 (no transition's input) leaves its scores as
+    they are and moves the whole-chunk score of the last transition."""
+    chunk = load_agent(pretrained, DiffusionPPOConfig(), seed=3).eval()
+    executed = load_agent(pretrained, DiffusionPPOConfig(logprob_actions="executed"), seed=3).eval()
+    assert chunk.policy.config.horizon > 1
+    collector = Collector(CrowdNavVectorEnv(2), chunk, None, torch.Generator().manual_seed(0))
+    collector.reset(500_000_000)
+    cols = Columns.of(collector.collect(chunk, 4), False, torch.device("cpu"))
+    samples, memory, starts = cols[torch.arange(8)]
+    later = {**samples, "chain": samples["chain"].clone()}
+    later["chain"][..., -1, 1:, :] += 0.3
+    with torch.no_grad():
+        torch.testing.assert_close(executed(later, memory, starts).logp, executed(samples, memory, starts).logp)
+        assert not torch.allclose(chunk(later, memory, starts).logp, chunk(samples, memory, starts).logp)
+        z = chunk.policy.actor.encoder(samples["state"].flatten(0, 1))
+        first = transition_log_prob(chunk.policy.actor, z, samples["chain"].flatten(0, 1), 0.1, actions=1)
+        torch.testing.assert_close(executed(samples, memory, starts).logp, first.view_as(executed(samples, memory, starts).logp))
+    with pytest.raises(ValueError, match="logprob_actions"):
+        DiffusionPPOConfig(logprob_actions="first").validate()
 
 
 def test_frozen_encoder_scores_from_stored_latents_and_stays_put(pretrained, tmp_path):

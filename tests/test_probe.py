@@ -119,3 +119,42 @@ def test_imitation_table_reads_the_runs_files(tmp_path):
     assert lines[3] == "| no val, no probe | n/a | 66.2 [61.9, 70.2] | 20.0 | 10.0 | 3.8 | n/a | n/a |  |"
     with pytest.raises(SystemExit, match="^error: --manifest"):
         table_mod.main([f"--manifest={tmp_path / 'missing.json'}"])
+
+
+# -- the exploration carry-over probe (scripts/probe_exploration.py) ---------------------------
+sys.path.insert(0, str(Path(__file__).parents[1] / "scripts"))
+spec_x = importlib.util.spec_from_file_location("probe_exploration", Path(__file__).parents[1] / "scripts/probe_exploration.py")
+explore_mod = sys.modules[spec_x.name] = importlib.util.module_from_spec(spec_x)
+spec_x.loader.exec_module(explore_mod)
+
+
+def noisy(rho: float, sigma: float = 0.05, seed: int = 0):
+    """Heads for the goal at 0.6 m/s, blended with a fraction rho of its own velocity; exploring adds
+    N(0, sigma^2) per component. The AR(1) walk's carry-over is 1 / sqrt(1 - rho^2)."""
+    rng = np.random.default_rng(seed)
+
+    def act(obs, explore):
+        d = (obs[:, 3:5] - obs[:, 0:2]).astype(np.float64)
+        a = rho * obs[:, 7:9] + (1 - rho) * 0.6 * d / np.linalg.norm(d, axis=1, keepdims=True)
+        return a + rng.normal(0, sigma, a.shape) if explore else a
+
+    return act
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_carry_over_is_one_for_redrawn_noise_and_grows_as_the_ar1_walk(rho):
+    r = explore_mod.carry_over(CONFIG, noisy(rho), episodes=64, steps=40, warmup=20)
+    assert r["rms_noise"] == pytest.approx(0.05 * math.sqrt(2), rel=0.1)
+    assert r["carry_over"] == pytest.approx(1 / math.sqrt(1 - rho**2), rel=0.15)
+
+
+def test_exploration_probe_runs_a_pdpo_checkpoint(tmp_path):
+    from conftest import make_tiny_checkpoint
+
+    path = make_tiny_checkpoint(tmp_path / "bc")
+    cfg = explore_mod.ExplorationConfig(env=CrowdSimConfig(task="BoundedCrowdNav-v0"), episodes=4, steps=4, warmup=1,
+                                        policy=probe_mod.PolicyPaths([str(path)]), output=tmp_path / "x.json")
+    r = explore_mod.run(cfg)["policies"][str(path)]
+    assert r["rms_noise"] > 0 and np.isfinite(r["carry_over"]) and (tmp_path / "x.json").exists()
+    with pytest.raises(ValueError, match="warmup"):
+        explore_mod.ExplorationConfig(warmup=4, steps=4, policy=probe_mod.PolicyPaths([str(path)])).validate()

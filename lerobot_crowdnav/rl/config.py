@@ -111,11 +111,18 @@ class DiffusionPPOConfig(PPOConfig):
     # "latent+state". A frozen BC encoding is not trained to tell good states from bad ones:
     # docs/finetune.md measures the critics' explained variance.
     critic_input: str = "latent"
+    # What a transition's log-probability averages over: the whole sampled "chunk" (H x 2 elements,
+    # the paper's appendix) or the "executed" action only (the chunk's first: DPPO's code keeps the
+    # executed actions). With "chunk" the H - 1 unexecuted actions dilute the executed one's ratio, so
+    # the same clip can let it move up to H times further (docs/finetune.md measures both).
+    logprob_actions: str = "chunk"
 
     def validate(self) -> None:
         super().validate()
         if self.critic_input not in ("latent", "state", "latent+state"):
             raise ValueError(f"--ppo.critic_input must be latent, state or latent+state, got {self.critic_input!r}")
+        if self.logprob_actions not in ("chunk", "executed"):
+            raise ValueError(f"--ppo.logprob_actions must be chunk or executed, got {self.logprob_actions!r}")
         if self.ft_denoising_steps < 1:
             raise ValueError(f"--ppo.ft_denoising_steps must be >= 1, got {self.ft_denoising_steps}")
         if self.ddim_steps < 0 or 0 < self.ddim_steps < self.ft_denoising_steps:

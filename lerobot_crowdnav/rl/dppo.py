@@ -60,20 +60,23 @@ def make_critic(pcfg, cfg: DiffusionPPOConfig) -> ValueHead:
                      obs_dim(pcfg.num_humans, pcfg.prediction_steps))
 
 
-def transition_log_prob(actor: DiffusionActor, z: Tensor, chain: Tensor, min_std: float) -> Tensor:
+def transition_log_prob(actor: DiffusionActor, z: Tensor, chain: Tensor, min_std: float,
+                        actions: int | None = None) -> Tensor:
     """Log-probabilities ``(B, K')`` of the transitions of chains ``(B, K'+1, H, 2)`` that ran the
     last K' reverse steps, under ``actor`` given the latent ``z (B, Z)``.
 
     Each transition x_k -> x_{k-1} is Gaussian with the network's mean and the posterior std
     floored at ``min_std``; the per-element log-density is clamped to [-5, 2] and averaged over
-    the chunk (DPPO). Index i = 0 is the noisiest step (k = K'-1), i = K'-1 the final one (k = 0).
-    All K' steps run as one batched denoiser call."""
+    the chunk's first ``actions`` actions (all H when None; DPPO's code keeps the executed ones).
+    Index i = 0 is the noisiest step (k = K'-1), i = K'-1 the final one (k = 0). All K' steps run
+    as one batched denoiser call."""
     b, ft = chain.shape[0], chain.shape[1] - 1
     k = torch.arange(ft - 1, -1, -1, device=chain.device).repeat(b)  # (B*K',)
     x_k = chain[:, :-1].reshape(b * ft, *chain.shape[2:])
     x_prev = chain[:, 1:].reshape(b * ft, *chain.shape[2:])
     mean, std = actor.p_mean_std(x_k, k, z.repeat_interleave(ft, dim=0))
-    logp = torch.distributions.Normal(mean, std.clamp(min=min_std)).log_prob(x_prev).clamp(-5, 2).mean(dim=(-2, -1))
+    dens = torch.distributions.Normal(mean, std.clamp(min=min_std)).log_prob(x_prev).clamp(-5, 2)
+    logp = dens[:, :actions].mean(dim=(-2, -1))
     return logp.view(b, ft)
 
 
@@ -123,7 +126,8 @@ class DiffusionPPOAgent(nn.Module):
         L, M = samples["state"].shape[:2]
         chain = samples["chain"].flatten(0, 1)
         z = samples["latent"].flatten(0, 1) if "latent" in samples else self.policy.actor.encoder(samples["state"].flatten(0, 1))
-        logp = transition_log_prob(self.policy.actor, z, chain, self.cfg.min_logprob_denoising_std)
+        actions = 1 if self.cfg.logprob_actions == "executed" else None  # receding horizon: one executed
+        logp = transition_log_prob(self.policy.actor, z, chain, self.cfg.min_logprob_denoising_std, actions)
         # The critic reads the shared encoder's latent through a stop-gradient, so a fresh critic
         # cannot overwrite the pretrained features.
         return Scores(logp.view(L, M, -1), self.critic(z, samples["state"].flatten(0, 1)).view(L, M), None)
