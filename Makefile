@@ -4,7 +4,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed
 PY := $(VENV)/bin/python
 
-.PHONY: main test bench clean
+.PHONY: main test bench tables clean
 
 $(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/lerobot_policy_pdpo/pyproject.toml \
 		policies/lerobot_policy_crowdnavpp/pyproject.toml
@@ -20,6 +20,12 @@ $(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/le
 # from scratch (demonstrations -> lerobot-train -> diffusion PPO; rerunning resumes).
 main: $(STAMP)
 	$(VENV)/bin/lerobot-crowdnav-main $(MAIN_ARGS)
+
+# The results and baseline tables of README.md and docs/results.md, rewritten from docs/data/ (the
+# CSV tables of make main's report and of lerobot-crowdnav-baselines). TABLES_ARGS refreshes
+# docs/data/ from runs first: TABLES_ARGS="--main=outputs/main --baselines=outputs/baselines".
+tables: $(STAMP)
+	$(PY) -m lerobot_crowdnav.evaluation.tables $(TABLES_ARGS)
 
 test: $(STAMP)
 	$(PY) -m pytest -q

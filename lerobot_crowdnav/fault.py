@@ -4,7 +4,8 @@
 reaches ``fault.point("<point>")``: a kill at an exact write or rename site, with no timing.
 ``<point>:<n>:SIGINT`` sends Ctrl-C there instead (what a user's interrupt does at that moment). Unset
 (always, outside tests), ``point`` is a dictionary lookup. The named points sit at the real sites
-(see docs/resume.md for the list) and ``lerobot_crowdnav.fault_injection`` drives them.
+(see docs/resume.md for the list); the harness that drives them, ``tests/fault_injection.py``, is
+test code and lives with the tests.
 """
 
 from __future__ import annotations

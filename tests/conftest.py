@@ -31,7 +31,7 @@ def make_tiny_checkpoint(root: Path, **overrides) -> Path:
     """An untrained small PDPO checkpoint with the statistics of an 8-episode ORCA dataset:
     ``root/pretrained_model`` with config, weights and processors, as lerobot-train saves it."""
     from lerobot_crowdnav.data.collect import main as collect_main
-    from lerobot_crowdnav.fault_injection import untrained_checkpoint
+    from fault_injection import untrained_checkpoint
 
     collect_main(["--episodes=8", "--batch_size=8", f"--root={root / 'ds'}", f"--repo_id=local/{root.name}"])
     return untrained_checkpoint(root, root / "ds", small_pdpo_config(**overrides))

@@ -1,10 +1,12 @@
 """Kill each long job at a named write/rename site, resume it, compare with an uninterrupted run.
 
-``python scripts/fault_injection.py --work_dir=DIR`` runs every case below at a larger size than
-the test suite (tests/test_fault_injection.py runs a few of them small). A case SIGKILLs the job in
-a subprocess through ``LEROBOT_CROWDNAV_FAULT`` (lerobot_crowdnav/fault.py), checks that what the
-kill left never looks complete when it is not, resumes the way a user would, and returns the
-differences from the uninterrupted run (empty: passed). Guarantees: docs/resume.md.
+A test tool, not part of the package: ``python tests/fault_injection.py --work_dir=DIR`` runs every
+case below at a larger size than the test suite (tests/test_fault_injection.py and
+tests/test_report.py run a few of them small; the tests import it as ``fault_injection``). A case
+SIGKILLs the job in a subprocess through ``LEROBOT_CROWDNAV_FAULT`` (lerobot_crowdnav/fault.py, the
+hook the product keeps at its write sites), checks that what the kill left never looks complete
+when it is not, resumes the way a user would, and returns the differences from the uninterrupted
+run (empty: passed). Guarantees: docs/resume.md.
 """
 
 from __future__ import annotations
@@ -22,10 +24,10 @@ import pyarrow.parquet as pq
 import torch
 from safetensors.torch import load_file
 
-from .checkpoint_files import FINETUNE_CONFIG, WEIGHTS
-from .cli import run_cli
-from .data.dataset import COLLECTION_FILE
-from .fault import ENV
+from lerobot_crowdnav.checkpoint_files import FINETUNE_CONFIG, WEIGHTS
+from lerobot_crowdnav.cli import run_cli
+from lerobot_crowdnav.data.dataset import COLLECTION_FILE
+from lerobot_crowdnav.fault import ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 REPO = "local/fault_orca"
@@ -90,7 +92,7 @@ def check_partial_dataset(root: Path) -> None:
 
 def collect_case(work: Path, keep: str, point: str, count: int, reference: Path, episodes: int,
                  batch_size: int) -> list[str]:
-    from .data.collect import main as collect_main
+    from lerobot_crowdnav.data.collect import main as collect_main
 
     root = work / f"collect_{keep}_{point}_{count}"
     argv = collect_argv(root, keep, episodes, batch_size)
@@ -162,7 +164,7 @@ def finetune_differences(a: Path, b: Path) -> list[str]:
 
 
 def finetune_case(work: Path, pretrained: Path, point: str, count: int, reference: Path, env_steps: int) -> list[str]:
-    from .rl.finetune import main as finetune_main
+    from lerobot_crowdnav.rl.finetune import main as finetune_main
 
     out = work / f"finetune_{point}_{count}"
     argv = finetune_argv(pretrained, out, env_steps)
@@ -180,7 +182,7 @@ def tree(root: Path) -> dict[str, bytes]:
 def hub_case(work: Path, kind: str, source: Path, old_source: Path, point: str, count: int) -> list[str]:
     """Push ``old_source``, then kill a push of ``source`` over it: the repository must be the old
     one or the new one, whole; a rerun of the push gives the new one."""
-    from .data.hub import main as push_main
+    from lerobot_crowdnav.data.hub import main as push_main
 
     hub = work / f"hub_{kind}_{point}_{count}"
     repo_id = f"local/fault_{kind}"
@@ -212,7 +214,7 @@ def report_tables(output_root: Path) -> dict[str, str]:
 
 def main_case(work: Path, point: str, count: int, reference: Path) -> list[str]:
     """``reference``: the output_root of an uninterrupted run."""
-    from .pipeline import main as pipeline_main
+    from lerobot_crowdnav.pipeline import main as pipeline_main
 
     root = work / f"main_{point}_{count}"
     run_killed(["-m", "lerobot_crowdnav.pipeline", *main_argv(root)], point, count)
@@ -236,9 +238,9 @@ class FaultInjectionConfig:
 
 
 def run_all(cfg: FaultInjectionConfig) -> dict[str, list[str]]:
-    from .data.collect import main as collect_main
-    from .rl.finetune import main as finetune_main
-    from .pipeline import main as pipeline_main
+    from lerobot_crowdnav.data.collect import main as collect_main
+    from lerobot_crowdnav.rl.finetune import main as finetune_main
+    from lerobot_crowdnav.pipeline import main as pipeline_main
 
     work = Path(cfg.work_dir)
     if work.exists():
@@ -288,3 +290,7 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(1)
 
     run_cli(FaultInjectionConfig, run, argv)
+
+
+if __name__ == "__main__":
+    main()

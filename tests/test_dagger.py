@@ -95,21 +95,23 @@ def test_a_round_aggregates_labelled_chunks_that_lerobot_reads(tmp_path):
 
 
 def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
-    from lerobot_crowdnav.pipeline import MainConfig, Pipeline
+    from lerobot_crowdnav.main.config import MainConfig
+    from lerobot_crowdnav.main.training import Training
 
     cfg = MainConfig(run="dagger", output_root=tmp_path, models=None, tasks=["BoundedCrowdNav-v0"], demos=8,
                      bc_steps=4, bc_batch_size=16, horizons=[1], bc_dagger_at=[2, 9], bc_dagger_episodes=2,
                      bc_args=["--policy.velocity_dropout=0.5"])
-    job = Pipeline(cfg)
+    cfg.validate()
+    job = Training(cfg)
     task = "BoundedCrowdNav-v0"
     job.collect(task)
     job.pretrain(task, 1, 1000)
     data = job.pretrain_dataset(task, 1, 1000)
-    assert data != job.dataset_root(task)
+    assert data != job.paths.dataset_root(task)
     rounds = json.loads((data / COLLECTION_FILE).read_text())["dagger"]
     assert [r["round"] for r in rounds] == [1]  # the round at step 9 is past the budget: none
-    assert "dagger" not in json.loads((job.dataset_root(task) / COLLECTION_FILE).read_text())
-    last = job.train_dir(task, 1, 1000) / "checkpoints" / "last"
+    assert "dagger" not in json.loads((job.paths.dataset_root(task) / COLLECTION_FILE).read_text())
+    last = job.paths.train_dir(task, 1, 1000) / "checkpoints" / "last"
     assert json.loads((last / "training_state/training_step.json").read_text())["step"] == 4
     train_cfg = json.loads((last / "pretrained_model/train_config.json").read_text())
     assert train_cfg["dataset"]["root"] == str(data) and train_cfg["policy"]["velocity_dropout"] == 0.5

@@ -1,5 +1,5 @@
 """Each long job SIGKILLed at named write/rename sites (LEROBOT_CROWDNAV_FAULT), resumed, and
-compared with an uninterrupted run; small sizes (scripts/fault_injection.py runs them all, larger).
+compared with an uninterrupted run; small sizes (tests/fault_injection.py, run as a script, runs them all, larger).
 The main job's case is in tests/test_report.py (it shares the uninterrupted tiny run)."""
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_crowdnav import fault
-from lerobot_crowdnav import fault_injection as fi
 from lerobot_crowdnav.cli import run_cli
 from lerobot_crowdnav.data.collect import main as collect_main
 from lerobot_crowdnav.rl.finetune import main as finetune_main
 
+import fault_injection as fi
 from conftest import make_tiny_checkpoint
 
 EPISODES, BATCH = 24, 8

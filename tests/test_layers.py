@@ -1,10 +1,14 @@
 """Imports only go down: every import (module- or function-level, absolute or relative) of every
 module of ``lerobot_crowdnav`` and of the plugins targets a module of the same or a lower layer
-(docs/architecture.md). A new module must be given a layer here."""
+(docs/architecture.md). A new module must be given a layer here. And the package ships only what
+the product uses: every module is reached by imports from an entry point (a console script, a
+module run with ``python -m``, the plugins lerobot discovers, the scripts); code only the tests
+use lives in tests/ (e.g. tests/fault_injection.py)."""
 
 from __future__ import annotations
 
 import ast
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -17,6 +21,7 @@ PACKAGES = {  # top-level package -> its directory
     "lerobot_policy_crowdnavpp": ROOT / "policies" / "lerobot_policy_crowdnavpp" / "lerobot_policy_crowdnavpp",
 }
 EV = "lerobot_crowdnav.evaluation"
+MAIN = "lerobot_crowdnav.main"
 # Lowest first. A module belongs to the layer of its longest listed prefix (a package or a module).
 LAYERS: list[tuple[str, list[str]]] = [
     ("base", ["lerobot_crowdnav.layout", "lerobot_crowdnav.cli", "lerobot_crowdnav.fault",
@@ -27,8 +32,13 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("data", ["lerobot_crowdnav.data"]),
     ("policy", ["lerobot_policy_pdpo", "lerobot_policy_crowdnavpp"]),
     ("rl", ["lerobot_crowdnav.rl"]),
-    ("evaluation CLIs and report", [f"{EV}.eval", f"{EV}.baselines", f"{EV}.figures", f"{EV}.report"]),
-    ("main job", ["lerobot_crowdnav.pipeline", "lerobot_crowdnav.fault_injection"]),
+    ("evaluation CLIs and report", [f"{EV}.eval", f"{EV}.baselines", f"{EV}.figures", f"{EV}.report", f"{EV}.tables"]),
+    # The main job in parts (lerobot_crowdnav/main/), each above the ones it needs.
+    ("main job: config, run folder, row type", [MAIN, f"{MAIN}.config", f"{MAIN}.paths", f"{MAIN}.rows"]),
+    ("main job: stage runner", [f"{MAIN}.stages"]),
+    ("main job: training stages, evaluation and report", [f"{MAIN}.training", f"{MAIN}.evaluation"]),
+    ("main job: sources of rows", [f"{MAIN}.sources"]),
+    ("main job: driver (lerobot-crowdnav-main)", ["lerobot_crowdnav.pipeline"]),
 ]
 
 
@@ -103,12 +113,54 @@ def test_imports_only_go_down():
     ("lerobot_crowdnav.rl.validation", "from ..evaluation.eval import main"),  # rl -> evaluation CLI
     ("lerobot_crowdnav.layout", "from . import fault, sim"),  # base -> sim (a package named in an import list)
     ("lerobot_crowdnav.sim.envs", "from ..nowhere import x"),  # a module with no layer
+    ("lerobot_crowdnav.main.stages", "from .training import Training"),  # within the main job: runner -> training
+    ("lerobot_crowdnav.main.evaluation", "from .sources import ShippedModels"),  # evaluation -> a source
+    ("lerobot_crowdnav.main.sources", "from ..pipeline import Pipeline"),  # a source -> the driver
 ])
 def test_the_check_fails_on_an_upward_import(module, source):
     assert violations(module, source, False, set(all_modules())), source
+
+
+def entry_points() -> set[str]:
+    """What the product starts from: the console scripts, the modules with a ``__main__`` block
+    (``python -m``), the packages lerobot discovers, and the modules the scripts import."""
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    roots = {target.split(":")[0] for target in scripts.values()} | set(PACKAGES)
+    roots |= {m for m, p in all_modules().items() if 'if __name__ == "__main__":' in p.read_text()}
+    known = set(all_modules())
+    for script in [*(ROOT / "scripts").glob("*.py"), *(ROOT / "datasets_scripts").glob("*.py")]:
+        roots |= {target for _, target in imported_modules("__script__", script.read_text(), False, known)}
+    return roots
+
+
+def reached(roots: set[str], modules: dict[str, Path]) -> set[str]:
+    """Every module of ours that importing ``roots`` loads (a module loads its parent packages)."""
+    known, seen, todo = set(modules), set(), list(roots)
+    while todo:
+        module = todo.pop()
+        if module in seen or module not in known:
+            continue
+        seen.add(module)
+        todo += [module.rpartition(".")[0]] if "." in module else []
+        path = modules[module]
+        todo += [t for _, t in imported_modules(module, path.read_text(), path.name == "__init__.py", known)]
+    return seen
+
+
+def test_the_package_ships_only_what_the_product_uses():
+    modules = all_modules()
+    assert sorted(set(modules) - reached(entry_points(), modules)) == []
+
+
+def test_the_reach_check_fails_on_a_module_only_tests_import():
+    """The fault-injection harness, when it lived in the package with no entry point of its own."""
+    modules = {**all_modules(), "lerobot_crowdnav.harness": ROOT / "tests" / "fault_injection.py"}
+    assert "lerobot_crowdnav.harness" not in reached(entry_points(), modules)
 
 
 def test_same_and_lower_layers_pass():
     known = set(all_modules())
     assert violations("lerobot_crowdnav.rl.validation", "from ..evaluation.episodes import run_episodes\n"
                       "from .loop import restart_memory\nimport numpy", False, known) == []
+    assert violations("lerobot_crowdnav.main.sources", "from .training import Training\nfrom .evaluation import Curve\n"
+                      "from ..evaluation.report import Budget", False, known) == []

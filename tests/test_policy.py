@@ -20,7 +20,8 @@ from lerobot_policy_pdpo import PDPOConfig, PDPOPolicy, make_pdpo_pre_post_proce
 from lerobot_policy_pdpo.processor_pdpo import crowd_state_stats
 
 from lerobot_crowdnav.data.collect import main as collect_main
-from lerobot_crowdnav.fault_injection import ROOT, run_killed
+
+from fault_injection import ROOT, run_killed
 
 REPO = "local/test_pdpo"
 BIN = Path(sys.executable).parent

@@ -11,11 +11,12 @@ from pathlib import Path
 import draccus
 import pytest
 
-from lerobot_crowdnav import fault_injection as fi
 from lerobot_crowdnav.evaluation.report import Row, boundary_audit, csv_table, markdown_table, parameter_table, wall_audit
-from lerobot_crowdnav.pipeline import MainConfig, Pipeline
+from lerobot_crowdnav.main.config import MainConfig
+from lerobot_crowdnav.main.training import Training
 from lerobot_crowdnav.pipeline import main as pipeline_main
 
+import fault_injection as fi
 
 
 def metrics(sr, nt, pl, itr, sd, episodes=()):
@@ -144,7 +145,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert commands["finetune2 original H=1 seed=1000"][0] == "lerobot-crowdnav-finetune"
     # stage 2 on stage 1's axes: from stage 1's best in env steps, after all of stage 1 in wall time
     cfg = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml", args=[f"--output_root={tiny_main}"])
-    records = Pipeline(cfg).finetune_records("BoundedCrowdNav-v0", 5, 1000, "PDPO")
+    records = Training(cfg).finetune_records("BoundedCrowdNav-v0", 5, 1000, "PDPO")
     first, second = records["PDPO, stage 1"], records["PDPO, stage 2"]
     best = root / "finetune" / "bounded_h5_s1000" / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
     start = json.loads(best.read_text())["env_steps_done"]
@@ -215,7 +216,7 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
 def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path):
     """Killed writing the first fine-tuning's checkpoint (no last yet: the rerun restarts that stage
     with --resume=true); the rerun completes and its tables equal the uninterrupted run's. More
-    points: scripts/fault_injection.py."""
+    points: tests/fault_injection.py (as a script)."""
     assert fi.main_case(tmp_path, "finetune.checkpoint_writing", 1, tiny_main) == []
 
 
@@ -230,9 +231,7 @@ def test_main_and_recipe_configs_parse_and_their_flags_do_too(path):
     import draccus
     from lerobot_policy_pdpo import PDPOConfig
 
-    from lerobot_crowdnav.pipeline import MainConfig
     from lerobot_crowdnav.rl.finetune import FinetuneConfig
-
     from lerobot_crowdnav.rl.train_ppo import TrainPPOConfig
 
     cfg = draccus.parse(MainConfig, config_path=str(path), args=[])

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from lerobot_crowdnav.evaluation.eval import main as eval_main
-from lerobot_crowdnav.pipeline import SHIPPED_MODELS
+from lerobot_crowdnav.main.config import SHIPPED_MODELS
 
 MODELS = sorted(p for p in SHIPPED_MODELS.iterdir() if p.is_dir()) if SHIPPED_MODELS.exists() else []
 

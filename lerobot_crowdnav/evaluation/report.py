@@ -1,5 +1,7 @@
 """Benchmark tables from ``metrics.json`` files (of ``lerobot-crowdnav-eval``), in markdown and CSV,
-and the main job's report from typed inputs (:class:`ReportInputs`, built by ``pipeline.py``).
+and the main job's report from typed inputs (:class:`ReportInputs`, built by the main job,
+``lerobot_crowdnav/main/``). docs/data/ keeps these CSV tables; ``tables.py`` writes the docs'
+tables from them.
 
 A table row is one method; each cell is the mean over the metrics files of that method (one per
 training seed) and, where there are several, ``mean +- std`` (population std). Rates are shown

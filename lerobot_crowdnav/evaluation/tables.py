@@ -1,0 +1,245 @@
+"""The results and baseline tables of README.md and docs/results.md, generated from one source.
+
+    python -m lerobot_crowdnav.evaluation.tables                    # make tables: rewrite the docs' tables from docs/data/
+    python -m lerobot_crowdnav.evaluation.tables --main=outputs/main --baselines=outputs/baselines
+                                                                    # first refresh docs/data/ from those runs
+    python -m lerobot_crowdnav.evaluation.tables --check=true       # exit 1 where a committed table differs
+
+The source is ``docs/data/`` (committed): ``main/*.csv``, the CSV tables of ``make main``'s report
+(``<run>/tables/``, copied as they are), and ``baselines/<table>.csv`` (+ ``<table>_wall_audit.csv``
+for Bounded), each ``lerobot-crowdnav-baselines`` table's ``metrics.json`` files in the report's
+CSV format (``report.csv_table``, ``report.wall_audit``). A doc's generated table sits between
+``<!-- table:NAME -->`` and ``<!-- /table -->`` (NAME: a key of :data:`BLOCKS`); everything
+outside the markers is left alone. Cells are formatted as in the report (``report.COLUMNS``: SR in
+% with its 95 % Wilson interval, NT in s, ...), ``mean ± std`` where a row averages several seeds.
+tests/test_tables.py fails when a committed table differs from what this writes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..cli import run_cli
+from .report import COLUMNS, RESULT_COLUMNS, WALL_AUDIT_HEADERS, Row, csv_table, wall_audit
+
+ROOT = Path(__file__).resolve().parents[2]
+DOCS = ["README.md", "docs/results.md"]  # the files whose tables are generated, relative to the repository
+MAIN_TABLES = ["results_bounded.csv", "results_original.csv", "wall_audit.csv", "boundary_audit.csv", "parameters.csv"]
+BASELINE_COLUMNS = ["SR", "SR95", "NT", "PL", "ITR", "SD", "CR", "TR", "OOB"]
+MARKER = re.compile(r"<!-- table:(?P<name>[\w-]+) -->\n(?P<body>.*?)<!-- /table -->", re.S)
+
+
+# -- docs/data/ from the runs' outputs -----------------------------------------------------------
+def import_main(run: Path, data: Path) -> list[Path]:
+    """Copy the CSV tables of a ``make main`` run folder (``<run>/tables``) to ``data/main``."""
+    out = data / "main"
+    out.mkdir(parents=True, exist_ok=True)
+    missing = [name for name in MAIN_TABLES if not (run / "tables" / name).exists()]
+    if missing:
+        raise FileNotFoundError(f"{run / 'tables'} lacks {', '.join(missing)}: is {run} a `make main` run folder?")
+    for name in MAIN_TABLES:
+        shutil.copyfile(run / "tables" / name, out / name)
+    return [out / name for name in MAIN_TABLES]
+
+
+def import_baselines(output_dir: Path, data: Path) -> list[Path]:
+    """Each table of a ``lerobot-crowdnav-baselines`` output directory (``<table>/<row>/metrics.json``)
+    as ``data/baselines/<table>.csv`` (+ ``<table>_wall_audit.csv`` in Bounded), in the report's
+    CSV format; tables not run there are left as they are."""
+    from .baselines import TABLES, _slug
+
+    out = data / "baselines"
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for key, (_, env, names) in TABLES.items():
+        paths = {name: output_dir / key / _slug(name) / "metrics.json" for name in names}
+        if not any(p.exists() for p in paths.values()):
+            continue
+        missing = [str(p) for p in paths.values() if not p.exists()]
+        if missing:
+            raise FileNotFoundError(f"table {key} is incomplete (rerun lerobot-crowdnav-baselines): {', '.join(missing)}")
+        rows = [Row(name, [json.loads(p.read_text())]) for name, p in paths.items()]
+        written.append(out / f"{key}.csv")
+        written[-1].write_text(csv_table(rows, BASELINE_COLUMNS))
+        if env["task"] == "BoundedCrowdNav-v0":
+            written.append(out / f"{key}_wall_audit.csv")
+            written[-1].write_text(wall_audit(rows)[1])
+    return written
+
+
+# -- the tables from docs/data/ ------------------------------------------------------------------
+def read_csv(path: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader(io.StringIO(path.read_text())))
+
+
+def result_cell(row: dict[str, str], column: str) -> str:
+    """A cell of a ``report.csv_table`` row, as ``report.markdown_table`` writes it."""
+    digits = COLUMNS[column][2]
+    if column == "SR95":
+        lo, hi = row["SR95_low"], row["SR95_high"]
+        return "n/a" if lo == "" else f"[{float(lo):.{digits}f}, {float(hi):.{digits}f}]"
+    mean, std = row[f"{column}_mean"], row[f"{column}_std"]
+    if mean == "":
+        return "n/a"
+    return f"{float(mean):.{digits}f}" + (f" ± {float(std):.{digits}f}" if int(row["n_seeds"]) > 1 else "")
+
+
+def _share(value: str) -> str:
+    return "n/a" if value == "" else f"{float(value):.1f}"
+
+
+@dataclass(frozen=True)
+class Part:
+    """Rows of one CSV file (under docs/data) in a table: ``rows`` picks and orders them by their
+    first column, ``{label in the file: label shown}`` (None: all, as labelled); ``first``: cells
+    put before the label (e.g. the benchmark); ``blank``: columns shown as ``-`` (not measured)."""
+
+    file: str
+    rows: dict[str, str] | None = None
+    first: tuple[str, ...] = ()
+    blank: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Block:
+    """One generated table: its ``kind`` (``results``: report columns ``columns``; ``wall_audit``,
+    ``boundary_audit``, ``parameters``: the report's audit and parameter tables), the header of the
+    leading cells and of the label, and its parts in order."""
+
+    kind: str
+    parts: list[Part]
+    lead: tuple[str, ...] = ()
+    label: str = "Method"
+    columns: list[str] = field(default_factory=lambda: list(RESULT_COLUMNS))
+
+
+def _rows(data: Path, part: Part) -> list[tuple[str, dict[str, str]]]:
+    table = read_csv(data / part.file)
+    key = next(iter(table[0])) if table else "method"
+    by_label = {r[key]: r for r in table}
+    if part.rows is None:
+        return [(r[key], r) for r in table]
+    missing = [label for label in part.rows if label not in by_label]
+    if missing:
+        raise ValueError(f"{data / part.file} has no row {', '.join(map(repr, missing))}")
+    return [(shown, by_label[label]) for label, shown in part.rows.items()]
+
+
+def render(block: Block, data: Path) -> str:
+    """The markdown table of ``block`` from the CSV files under ``data``."""
+    if block.kind == "results":
+        header = [*block.lead, block.label, *(COLUMNS[c][3] for c in block.columns)]
+    elif block.kind == "wall_audit":
+        header = [*block.lead, block.label, "episodes", *(f"{h} (%)" for h in WALL_AUDIT_HEADERS.values())]
+    elif block.kind == "boundary_audit":
+        header = [*block.lead, block.label, "successful episodes", "left the workspace", "share (%)"]
+    elif block.kind == "parameters":
+        header = [*block.lead, block.label, "actor (M)", "critic (M)"]
+    else:
+        raise ValueError(f"unknown table kind {block.kind!r}")
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for part in block.parts:
+        for label, r in _rows(data, part):
+            if block.kind == "results":
+                cells = ["-" if c in part.blank else result_cell(r, c) for c in block.columns]
+            elif block.kind == "wall_audit":
+                cells = [r["episodes"], *(_share(r[o]) for o in WALL_AUDIT_HEADERS)]
+            elif block.kind == "boundary_audit":
+                cells = [r["successes"], r["out_of_bounds"], _share(r["share_percent"])]
+            else:
+                cells = [f"{int(r['actor']) / 1e6:.3f}", f"{int(r['critic']) / 1e6:.3f}"]
+            lines.append("| " + " | ".join([*part.first, label, *cells]) + " |")
+    if block.kind == "parameters":
+        lines.append("| " + " | ".join([*("" for _ in block.lead), "paper (PDPO)", "0.848", "0.201"]) + " |")
+    return "\n".join(lines)
+
+
+def _same(*labels: str) -> dict[str, str]:
+    return {label: label for label in labels}
+
+
+_MAIN_ROWS = {"bounded": "main/results_bounded.csv", "original": "main/results_original.csv"}
+BLOCKS: dict[str, Block] = {
+    # README.md: both benchmarks in one table.
+    "main": Block("results", [Part(_MAIN_ROWS["bounded"], first=("Bounded",)),
+                              Part(_MAIN_ROWS["original"], first=("original",))], lead=("benchmark",)),
+    # docs/results.md
+    "main-bounded": Block("results", [Part(_MAIN_ROWS["bounded"])]),
+    "main-original": Block("results", [Part(_MAIN_ROWS["original"])]),
+    "wall-audit": Block("wall_audit", [
+        Part("main/wall_audit.csv", _same("ORCA (look-ahead)")),
+        Part("baselines/bounded_paper_wall_audit.csv", {"ORCA current-state": "ORCA current-state (baseline below)"}),
+        Part("main/wall_audit.csv", _same("straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"))]),
+    "boundary-audit": Block("boundary_audit", [Part("main/boundary_audit.csv")]),
+    "parameters": Block("parameters", [Part("main/parameters.csv")], label="Policy"),
+    "baselines-paper": Block("results", [Part("baselines/bounded_paper.csv", first=("Bounded",), blank=("OOB",)),
+                                         Part("baselines/original_paper.csv", first=("original",))],
+                             lead=("variant",), label="policy", columns=BASELINE_COLUMNS),
+    "crowdnavpp-orca-baseline": Block("results", [Part("baselines/crowdnavpp_orca_baseline.csv",
+                                                       _same("ORCA current-state"))],
+                                      label="policy", columns=BASELINE_COLUMNS[:-1]),
+}
+
+
+def regenerate(text: str, data: Path, blocks: dict[str, Block] = BLOCKS) -> str:
+    """``text`` with every generated block rewritten from ``data``."""
+    def block(match: re.Match) -> str:
+        name = match["name"]
+        if name not in blocks:
+            raise ValueError(f"unknown table {name!r} (known: {', '.join(blocks)})")
+        return f"<!-- table:{name} -->\n{render(blocks[name], data)}\n<!-- /table -->"
+
+    if text.count("<!-- table:") != text.count("<!-- /table -->"):
+        raise ValueError("a <!-- table:NAME --> marker without its <!-- /table --> (or the other way round)")
+    return MARKER.sub(block, text)
+
+
+@dataclass
+class TablesConfig:
+    # A `make main` run folder whose tables/*.csv replace docs/data/main/ first (default: keep them).
+    main: Path | None = None
+    # A lerobot-crowdnav-baselines output directory whose tables replace docs/data/baselines/ first.
+    baselines: Path | None = None
+    # Only report the docs whose tables differ from docs/data/ (exit 1 if any), rewrite nothing.
+    check: bool = False
+    # The repository (README.md, docs/) and the data directory, relative to it.
+    root: Path = ROOT
+    data: Path = Path("docs/data")
+
+
+def tables(cfg: TablesConfig) -> list[Path]:
+    """Rewrite (or with ``check`` only compare) the generated tables of :data:`DOCS`; returns the
+    docs that were (or would be) changed."""
+    data = cfg.root / cfg.data
+    if cfg.main is not None:
+        import_main(cfg.main, data)
+    if cfg.baselines is not None:
+        import_baselines(cfg.baselines, data)
+    changed = []
+    for doc in DOCS:
+        path = cfg.root / doc
+        text = path.read_text()
+        new = regenerate(text, data)
+        if new != text:
+            changed.append(path)
+            if not cfg.check:
+                path.write_text(new)
+    verb = "differ from docs/data (run: make tables)" if cfg.check else "rewritten"
+    print(f"{len(changed)} of {len(DOCS)} docs {verb}" + "".join(f"\n  {p}" for p in changed))
+    if cfg.check and changed:
+        raise SystemExit(1)
+    return changed
+
+
+def main(argv: list[str] | None = None) -> None:
+    run_cli(TablesConfig, tables, argv)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""The main job's settings: ``MainConfig`` (every ``lerobot-crowdnav-main`` flag) and its checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..sim.config import SEED_SPLITS, TASKS
+
+# The trained models shipped in the repository (hub format: models/<org>/<name>), made by the
+# recipes (docs/recipes.md).
+SHIPPED_MODELS = Path(__file__).resolve().parents[2] / "models" / "lerobot-crowdnav"
+
+
+@dataclass
+class MainConfig:
+    # Run name: everything goes to <output_root>/<run>/.
+    run: str = "main"
+    output_root: Path = Path("outputs")
+    # Trained models to evaluate instead of training: a directory of hub-format model directories
+    # named pdpo_<task>_h<H> and crowdnavpp_<task> (<task> = bounded | original). The job then
+    # evaluates them and the baselines on the test seeds, draws the figures and writes the report:
+    # no demonstrations, no training. Default: the models shipped in the repository. null trains
+    # every policy from scratch with the budget below (configs/main/retrain.yaml: the recipes').
+    models: Path | None = SHIPPED_MODELS
+    # Benchmarks, each with its own demonstrations and policies.
+    tasks: list[str] = field(default_factory=lambda: ["BoundedCrowdNav-v0", "CrowdNav-v0"])
+    # Simulator preset (paper | crowdnavpp).
+    preset: str = "paper"
+    # ORCA demonstrations per task, successful episodes (paper: 3,000).
+    demos: int = 300
+    # Pretraining steps of lerobot-train at bc_batch_size; bc_epochs > 0 replaces it by that many
+    # epochs over the demonstrations (paper: 200 epochs at batch 128).
+    bc_steps: int = 2000
+    bc_epochs: float = 0.0
+    bc_batch_size: int = 128
+    # lerobot-train data-loader workers: with the plugin's fast loader, 0 is fastest on 2 cores.
+    bc_num_workers: int = 0
+    # Chunk horizons: 5 = PDPO, 1 = the "w/o action chunk" ablation ([] with a CrowdNav++ budget:
+    # no PDPO, no demonstrations).
+    horizons: list[int] = field(default_factory=lambda: [5, 1])
+    # Diffusion-PPO budget per policy in env steps (paper: about 12 M), envs per process, rollout
+    # length, validation episodes and interval (env steps).
+    ft_env_steps: int = 16384
+    ft_num_envs: int = 32
+    ft_n_steps: int = 64
+    # Minibatch in env steps, each with its 10 denoising transitions (paper: 500).
+    ft_batch_size: int = 500
+    ft_val_episodes: int = 20
+    ft_val_freq: int = 4096
+    # DAgger rounds in pretraining (lerobot_crowdnav.data.dagger; [] = plain behaviour cloning, the
+    # paper): at each of these lerobot-train steps (below the BC budget) the policy trained so far
+    # drives bc_dagger_episodes learner episodes, the ORCA demonstrator labels every state it
+    # visits with its chunk from there, and lerobot-train resumes on the aggregate (each policy
+    # aggregates into its own copy of the demonstrations, datasets/<task>_h<H>_s<seed>_dagger).
+    bc_dagger_at: list[int] = field(default_factory=list)
+    bc_dagger_episodes: int = 500
+    # Further flags of every lerobot-train run (e.g. ["--policy.noise_draws=4"]) and of every
+    # lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]): a recipe's own settings.
+    bc_args: list[str] = field(default_factory=list)
+    ft_args: list[str] = field(default_factory=list)
+    # A second diffusion-PPO stage per policy (0: none): it continues from the first stage's `best`
+    # checkpoint (critic included) for ft2_env_steps env steps with the first stage's flags, then
+    # ft2_args on top (later flags win), e.g. ["--ppo.freeze_encoder=false"]: the recipes train the
+    # encoder once the cheap frozen-encoder stage has plateaued (docs/recipes.md). Its training
+    # episodes and sampling noise come from seeds of their own (seed + 1, env seed 520,000,000).
+    ft2_env_steps: int = 0
+    ft2_args: list[str] = field(default_factory=list)
+    # The CrowdNav++ (Const. Vel.) baseline: PPO env steps per task of CrowdNav++'s network trained
+    # from scratch by lerobot-crowdnav-train-ppo with the reference's PPO settings (reference: 10 M;
+    # docs/crowdnavpp.md); 0 = no CrowdNav++ row. Further flags of that run (e.g. "--val.freq=...").
+    crowdnavpp_env_steps: int = 0
+    crowdnavpp_args: list[str] = field(default_factory=list)
+    # Training seeds (pretraining and fine-tuning); tables show mean +- std over them.
+    seeds: list[int] = field(default_factory=lambda: [1000])
+    # Test episodes per method, the first seeds of the test split (paper: 500).
+    test_episodes: int = 500
+    # Figures: the test episode drawn, its steps and the chunks sampled per step.
+    figure_episode: int = 0
+    figure_steps: list[int] = field(default_factory=lambda: [0, 4, 8, 12, 16])
+    figure_samples: int = 32
+    # Organization of the hub-format repositories (<run>/hub/{datasets,models}/<org>/...).
+    hub_org: str = "local"
+    # Torch device for training and evaluation (default: cuda when available, else cpu).
+    device: str | None = None
+    # Evaluate again even when metrics exist (the tables come out identical: evaluation is deterministic).
+    rerun_eval: bool = False
+
+    def validate(self) -> None:
+        bad = [t for t in self.tasks if t not in TASKS]
+        if bad or not self.tasks:
+            raise ValueError(f"--tasks must be a non-empty subset of {list(TASKS)}, got {self.tasks}")
+        if any(h < 1 for h in self.horizons):
+            raise ValueError(f"--horizons must be positive, got {self.horizons}")
+        if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0:
+            raise ValueError("--crowdnavpp_env_steps and --ft2_env_steps must be >= 0")
+        if self.models is None and not self.horizons and not self.crowdnavpp_env_steps:
+            raise ValueError("nothing to train: give --horizons (PDPO) and/or --crowdnavpp_env_steps (CrowdNav++)")
+        if not self.seeds:
+            raise ValueError("--seeds needs at least one seed")
+        if any(step < 1 for step in self.bc_dagger_at) or len(set(self.bc_dagger_at)) != len(self.bc_dagger_at):
+            raise ValueError(f"--bc_dagger_at must be distinct positive lerobot-train steps, got {self.bc_dagger_at}")
+        for name in ("demos", "bc_steps", "bc_batch_size", "bc_dagger_episodes", "ft_env_steps", "ft_num_envs", "ft_n_steps", "ft_batch_size",
+                     "ft_val_episodes", "test_episodes", "figure_samples"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
+        test_size = SEED_SPLITS["test"][1] - SEED_SPLITS["test"][0]
+        if self.test_episodes > test_size or not 0 <= self.figure_episode < test_size:
+            raise ValueError(f"--test_episodes and --figure_episode must fit the {test_size} test seeds")
+        if self.models is not None and not self.models.is_dir():
+            raise ValueError(f"--models={self.models} is not a directory of trained models; pass --models=null "
+                             "(or a training config such as configs/main/retrain.yaml) to train from scratch")
+
+    @property
+    def root(self) -> Path:
+        return self.output_root / self.run

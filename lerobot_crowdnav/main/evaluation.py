@@ -1,0 +1,111 @@
+"""The main job's evaluation side, whatever source the rows come from: every row's policies on the
+same test seeds (``lerobot-crowdnav-eval``; deterministic, so ``--rerun_eval=true`` regenerates
+identical tables), the storyboard and multimodality figures of a PDPO policy, and the report
+(``evaluation.report`` from typed inputs: tables and CSV, audits, provenance, stages)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from ..evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
+from ..sim.config import CrowdSimConfig, split_seeds
+from .config import MainConfig
+from .paths import SHORT, TITLE, RunPaths, eval_stage, figures_stage
+from .rows import Evaluation, MethodRow, finetuned_label
+from .stages import StageRunner
+
+# A learning curve in the report: (caption, image under the run folder).
+Curve = tuple[str, Path]
+
+
+class Evaluator:
+    """Evaluation, figures and report of one run (``cfg``), writing under ``paths``."""
+
+    def __init__(self, cfg: MainConfig, paths: RunPaths, runner: StageRunner):
+        self.cfg = cfg
+        self.paths = paths
+        self.runner = runner
+
+    def _env_flags(self, task: str) -> list[str]:
+        return [f"--env.task={task}", f"--env.preset={self.cfg.preset}"]
+
+    def baseline_rows(self, task: str) -> list[MethodRow]:
+        """The rows every run has: the preset's ORCA robot and the straight line."""
+        robot = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().orca_robot.replace("_", "-")
+        return [MethodRow(f"ORCA ({robot})", [Evaluation("orca")]), MethodRow("straight", [Evaluation("straight")])]
+
+    def evaluate(self, task: str, ev: Evaluation) -> Stage:
+        from ..evaluation.eval import main as eval_main
+
+        out = self.paths.eval_dir(task, ev.name)
+        metrics = out / "metrics.json"
+        policy = [f"--policy.type={ev.name}"] if ev.policy is None else [f"--policy.path={ev.policy}"]
+        if self.cfg.device and ev.policy is not None:
+            policy.append(f"--policy.device={self.cfg.device}")
+        argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), f"--eval.n_episodes={self.cfg.test_episodes}",
+                "--eval.split=test", f"--eval.batch_size={min(256, self.cfg.test_episodes)}", "--eval.n_videos=1",
+                f"--output_dir={out}", "--overwrite=true"]
+        # A shipped model may have been replaced since its last evaluation (under a minute): always run.
+        done = (not self.cfg.rerun_eval and not ev.shipped and metrics.exists()
+                and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
+        return self.runner.run(eval_stage(task, ev.name), argv, done, lambda: eval_main(argv[1:]))
+
+    def evaluate_rows(self, task: str, rows: list[MethodRow]) -> list[Method]:
+        """Each row's policies on the test seeds, with the stages that made them (provenance)."""
+        methods = []
+        for row in rows:
+            evaluated = []
+            for ev in row.evaluations:
+                stage = self.evaluate(task, ev)
+                evaluated.append(Evaluated(ev.name, self.paths.eval_dir(task, ev.name), stage, ev.policy, ev.seed,
+                                           ev.pretrain, ev.finetune, ev.shipped))
+            methods.append(Method(row.label, evaluated))
+        return methods
+
+    def figures(self, task: str, shown: Evaluation | None, curves: list[Curve], draw_curves: Callable[[], None],
+                redraw: bool) -> tuple[Stage | None, list[Curve]]:
+        """Storyboard and multimodality of the PDPO policy ``shown`` (none without one), and the
+        learning curves that ``draw_curves`` writes (after the two figures); ``redraw``: draw them
+        even when they exist (the policies may have been replaced: seconds)."""
+        from ..evaluation.figures import record_snapshots
+        from ..evaluation.plots import plot_multimodality, plot_storyboard
+
+        if shown is None:
+            return None, []
+        out = self.paths.figures_dir(task)
+        policy = shown.policy
+        episode_seed = split_seeds("test", self.cfg.figure_episode + 1)[-1]
+        paths = {"storyboard": out / "storyboard.png", "multimodality": out / "multimodality.png"}
+        steps = ",".join(map(str, self.cfg.figure_steps))
+        argv = ["python", "-m", "lerobot_crowdnav.evaluation.figures", f"--policy.path={policy}", *self._env_flags(task),
+                f"--seed={episode_seed}", f"--steps={steps}", f"--n_samples={self.cfg.figure_samples}", f"--output_dir={out}"]
+        label = finetuned_label(shown.horizon)
+
+        def run() -> None:
+            sim_cfg = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve()
+            snaps = record_snapshots(policy, sim_cfg, episode_seed, self.cfg.figure_steps, self.cfg.figure_samples,
+                                     device=self.cfg.device or "cpu")
+            walls = sim_cfg.arena_size if sim_cfg.bounded else None
+            plot_storyboard(snaps, paths["storyboard"], sim_cfg.sensing_range, sim_cfg.dt, arena_size=walls,
+                            title=f"{TITLE[task]}, test episode {episode_seed}: {label}")
+            plot_multimodality(snaps, paths["multimodality"], sim_cfg.sensing_range, sim_cfg.dt, arena_size=walls,
+                               title=f"{TITLE[task]}, test episode {episode_seed}: {self.cfg.figure_samples} chunks "
+                                     "sampled per observation")
+            draw_curves()
+
+        done = (all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval
+                and not redraw)
+        return self.runner.run(figures_stage(task), argv, done, run), curves
+
+    def task_results(self, task: str, methods: list[Method], figures: Stage | None, curves: list[Curve],
+                     missing: list[str]) -> TaskResults:
+        bounded = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().bounded
+        return TaskResults(task, TITLE[task], SHORT[task], methods, self.paths.figures_dir(task), figures, curves,
+                           bounded=bounded, missing_models=missing)
+
+    def report(self, tasks: list[TaskResults], budget: Budget | None, models: Path | None, wall_time_s: float) -> Path:
+        """``report.md``, ``tables/*.csv`` and ``commands.json`` (this invocation's stages, in order)."""
+        return write_report(ReportInputs(self.paths.root, budget, tasks, list(self.runner.stages.values()), wall_time_s,
+                                         self.cfg.test_episodes, self.cfg.preset, models))

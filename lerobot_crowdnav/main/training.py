@@ -1,0 +1,253 @@
+"""The main job's training stages, for a run that trains from scratch: ORCA demonstrations, PDPO
+pretraining with the stock ``lerobot-train`` (in segments around DAgger rounds), one or two
+diffusion-PPO fine-tuning stages, CrowdNav++ by PPO, and the hub-format pushes of what was
+trained. Each stage runs the command a user would type (lerobot-train as a subprocess, this
+project's CLIs in-process) through the ``StageRunner``, skipped when complete and resumed when
+interrupted (collection, lerobot-train and fine-tuning from their last checkpoint)."""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from ..checkpoint_files import FINETUNE_CONFIG, TRAIN_PPO_CONFIG
+from ..cli import machine_description
+from ..evaluation.report import Stage
+from ..sim.config import PPO_STAGE2_ENV_SEED
+from .config import MainConfig
+from .paths import (SHORT, RunPaths, collect_stage, crowdnavpp_stage, eval_stage, finetune_stage, pretrain_stage,
+                    push_dataset_stage, push_policy_stage)
+from .rows import Evaluation
+from .stages import StageRunner
+
+
+class Training:
+    """The training stages of one run (``cfg``'s budget), writing under ``paths``."""
+
+    def __init__(self, cfg: MainConfig, paths: RunPaths | None = None, runner: StageRunner | None = None,
+                 command: str = "lerobot-crowdnav-main"):
+        self.cfg = cfg
+        self.paths = paths or RunPaths(cfg.root, cfg.hub_org)
+        self.runner = runner or StageRunner(self.paths.stage_times)
+        self.command = command  # what the user typed: the model cards' "reproduce" line
+        self.device = cfg.device
+
+    def _env_flags(self, task: str) -> list[str]:
+        return [f"--env.task={task}", f"--env.preset={self.cfg.preset}"]
+
+    @property
+    def ft_stages(self) -> list[int]:
+        """The diffusion-PPO stages of each policy: [1], or [1, 2] with ``ft2_env_steps``."""
+        return [1, 2] if self.cfg.ft2_env_steps else [1]
+
+    @property
+    def main_horizon(self) -> int | None:
+        """The horizon of the "pretrained only" row and of the figures (PDPO's 5 when run)."""
+        return 5 if 5 in self.cfg.horizons else next(iter(self.cfg.horizons), None)
+
+    # -- stages --------------------------------------------------------------------------------
+    def collect(self, task: str) -> Stage:
+        from ..data.collect import main as collect_main
+
+        root = self.paths.dataset_root(task)
+        info = root / "meta" / "info.json"
+        done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
+                and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos)
+        argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
+                f"--repo_id={self.paths.repo_id(task)}", f"--root={root}"]
+        resume = ["--resume=true"] if root.exists() else []
+        return self.runner.run(collect_stage(task), argv, done, lambda: collect_main(argv[2:] + resume))
+
+    def bc_steps(self, task: str) -> int:
+        if self.cfg.bc_epochs <= 0:
+            return self.cfg.bc_steps
+        frames = json.loads((self.paths.dataset_root(task) / "meta" / "info.json").read_text())["total_frames"]
+        return math.ceil(self.cfg.bc_epochs * frames / self.cfg.bc_batch_size)
+
+    def pretrain_dataset(self, task: str, h: int, seed: int) -> Path:
+        """What the policy is cloned from: the demonstrations, or with DAgger its own copy of them
+        that the rounds aggregate into."""
+        if not self.cfg.bc_dagger_at:
+            return self.paths.dataset_root(task)
+        return self.paths.dagger_dataset_root(task, h, seed)
+
+    def pretrain(self, task: str, h: int, seed: int) -> Stage:
+        """lerobot-train on the demonstrations; with DAgger, in segments that end at the rounds."""
+        from ..data.dagger import main as dagger_main
+
+        out = self.paths.train_dir(task, h, seed)
+        steps = self.bc_steps(task)
+        last = out / "checkpoints" / "last"
+        step_file = last / "training_state" / "training_step.json"
+
+        def step_done() -> int:
+            return json.loads(step_file.read_text())["step"] if step_file.exists() else 0
+
+        data = self.pretrain_dataset(task, h, seed)
+        segments = [*sorted(s for s in self.cfg.bc_dagger_at if s < steps), steps]
+        argv = ["lerobot-train", "--policy.type=pdpo", f"--policy.horizon={h}", f"--dataset.repo_id={self.paths.repo_id(task)}",
+                f"--dataset.root={data}", "--policy.push_to_hub=false", f"--output_dir={out}",
+                f"--steps={segments[0]}", f"--batch_size={self.cfg.bc_batch_size}", f"--save_freq={max(1, steps // 4)}",
+                f"--log_freq={max(1, min(200, steps // 10))}", f"--num_workers={self.cfg.bc_num_workers}",
+                f"--seed={seed}", "--wandb.enable=false", f"--job_name={out.name}", *self.cfg.bc_args]
+        if self.device:
+            argv.append(f"--policy.device={self.device}")
+
+        def train_to(target: int) -> None:
+            cmd = list(argv)
+            if last.exists():  # a later segment, or interrupted: lerobot-train resumes from its last checkpoint
+                if step_done() >= target:
+                    return
+                cmd = ["lerobot-train", f"--config_path={last / 'pretrained_model' / 'train_config.json'}", "--resume=true",
+                       f"--steps={target}"]
+            elif out.exists():
+                shutil.rmtree(out)  # started but never checkpointed: lerobot-train refuses an existing dir
+            cmd[0] = str(Path(sys.executable).parent / "lerobot-train")
+            subprocess.run(cmd, check=True)
+
+        def run() -> None:
+            demos = self.paths.dataset_root(task)
+            if data != demos and not data.exists():
+                staging = data.with_name(f".{data.name}.tmp")
+                shutil.rmtree(staging, ignore_errors=True)
+                shutil.copytree(demos, staging)
+                staging.replace(data)
+            for r, target in enumerate(segments):
+                if r:  # a round is skipped once the dataset holds it
+                    dagger_main([f"--policy_path={last / 'pretrained_model'}", f"--root={data}", f"--round={r}",
+                                 f"--episodes={self.cfg.bc_dagger_episodes}", f"--seed={seed}",
+                                 *([f"--device={self.device}"] if self.device else [])])
+                train_to(target)
+
+        return self.runner.run(pretrain_stage(task, h, seed), argv, step_done() >= steps, run)
+
+    def finetune(self, task: str, h: int, seed: int, stage: int = 1) -> Stage:
+        """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``best`` (stage 2)."""
+        from ..rl.finetune import main as finetune_main
+
+        c = self.cfg
+        out = self.paths.finetune_dir(task, h, seed, stage)
+        steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
+        saved = out / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG
+        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= steps
+        source = (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
+                  else self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best") / "pretrained_model"
+        argv = ["lerobot-crowdnav-finetune", f"--policy.path={source}",
+                *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
+                f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
+                f"--save_freq={max(c.ft_val_freq, steps // 4)}", f"--output_dir={out}", *c.ft_args]
+        argv += [f"--seed={seed}"] if stage == 1 else [f"--seed={seed + 1}", f"--env_seed={PPO_STAGE2_ENV_SEED}", *c.ft2_args]
+        if self.device:
+            argv.append(f"--device={self.device}")
+        resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
+        return self.runner.run(finetune_stage(task, h, seed, stage), argv, done, lambda: finetune_main(argv[1:] + resume))
+
+    def train_crowdnavpp(self, task: str, seed: int) -> Stage:
+        """CrowdNav++ from scratch by PPO (the reference's settings are the CLI's defaults)."""
+        from ..rl.train_ppo import main as train_ppo_main
+
+        out = self.paths.crowdnavpp_dir(task, seed)
+        saved = out / "checkpoints" / "last" / "pretrained_model" / TRAIN_PPO_CONFIG
+        c = self.cfg
+        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= c.crowdnavpp_env_steps
+        argv = ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp", *self._env_flags(task),
+                "--env.compute_intrusion=false", f"--env_steps={c.crowdnavpp_env_steps}", f"--seed={seed}",
+                f"--output_dir={out}", *c.crowdnavpp_args]
+        if self.device:
+            argv.append(f"--device={self.device}")
+        resume = ["--resume=true"] if out.exists() else []
+        return self.runner.run(crowdnavpp_stage(task, seed), argv, done, lambda: train_ppo_main(argv[1:] + resume))
+
+    # -- what the stages made ------------------------------------------------------------------
+    def pretrained(self, task: str, h: int, seed: int, pretrain: Stage | None = None) -> Evaluation:
+        """The BC policy: lerobot-train's ``last`` checkpoint."""
+        path = self.paths.train_dir(task, h, seed) / "checkpoints" / "last" / "pretrained_model"
+        return Evaluation(f"pdpo_bc_h{h}_s{seed}", path, h, seed, pretrain=pretrain)
+
+    def finetuned(self, task: str, h: int, seed: int, pretrain: Stage | None = None,
+                  finetune: Stage | None = None) -> Evaluation:
+        """The policy's final diffusion-PPO stage's ``best`` checkpoint."""
+        out = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
+        return Evaluation(f"pdpo_ft_h{h}_s{seed}", out / "checkpoints" / "best" / "pretrained_model", h, seed,
+                          pretrain=pretrain, finetune=finetune)
+
+    def crowdnavpp(self, task: str, seed: int, stage: Stage | None = None) -> Evaluation:
+        return Evaluation(f"crowdnavpp_s{seed}", self.paths.crowdnavpp_dir(task, seed) / "checkpoints" / "best" / "pretrained_model",
+                          seed=seed, finetune=stage)
+
+    def finetune_curve(self, task: str, h: int, seed: int) -> Path:
+        """A policy's fine-tuning curve for its card: the trainer's own with one stage, every stage
+        on one axis with two."""
+        from ..evaluation.plots import plot_finetune_curves
+
+        last = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
+        if len(self.ft_stages) == 1:
+            return last / "training_curves.png"
+        return plot_finetune_curves(self.finetune_records(task, h, seed, "PDPO"), last / "training_curves_stages.png")
+
+    def finetune_records(self, task: str, h: int, seed: int, label: str) -> dict[str, list[dict]]:
+        """The ``progress.jsonl`` records of each fine-tuning stage of one policy, by label, for
+        ``plot_finetune_curves``. Stage 2 is drawn from where it starts in env steps (stage 1's
+        best checkpoint) and after the whole of stage 1 in wall time (the time it cost)."""
+        def read(run: Path) -> list[dict]:
+            return [json.loads(line) for line in (run / "progress.jsonl").read_text().splitlines()]
+
+        first = read(self.paths.finetune_dir(task, h, seed))
+        if 2 not in self.ft_stages:
+            return {label: first}
+        best = self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / FINETUNE_CONFIG
+        start = json.loads(best.read_text())["env_steps_done"]
+        spent = max(r.get("time/wall_s") or 0.0 for r in first)
+        second = [{**r, "env_steps": r["env_steps"] + start,
+                   "time/wall_s": None if r.get("time/wall_s") is None else r["time/wall_s"] + spent}
+                  for r in read(self.paths.finetune_dir(task, h, seed, 2))]
+        second[0]["time/wall_s"] = spent  # its starting validation
+        return {f"{label}, stage 1": first, f"{label}, stage 2": second}
+
+    # -- pushes --------------------------------------------------------------------------------
+    def push(self, task: str) -> None:
+        """The dataset and each trained policy (``best``) to the run's hub-format directory."""
+        from ..data.hub import push_dataset_to_dir
+
+        hub, short, seed = self.paths.hub, SHORT[task], self.cfg.seeds[0]
+        if self.cfg.horizons:
+            repo, root = self.paths.repo_id(task), self.paths.dataset_root(task)
+            argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=dataset", f"--root={root}",
+                    f"--repo_id={repo}", f"--push_to_hub_dir={hub}", "--overwrite=true"]
+            self.runner.run(push_dataset_stage(task), argv, (hub / "datasets" / repo).exists(),
+                            lambda: push_dataset_to_dir(root, repo, hub, overwrite=True))
+        for h in self.cfg.horizons:
+            self._push_policy(task, self.finetuned(task, h, seed), f"pdpo_{short}_h{h}",
+                              functools.partial(self.finetune_curve, task, h, seed),
+                              [collect_stage(task), pretrain_stage(task, h, seed),
+                               *(finetune_stage(task, h, seed, n) for n in self.ft_stages)])
+        if self.cfg.crowdnavpp_env_steps:
+            self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}",
+                              lambda: self.paths.crowdnavpp_dir(task, seed) / "training_curves.png",
+                              [crowdnavpp_stage(task, seed)])
+
+    def _push_policy(self, task: str, ev: Evaluation, name: str, curve: Callable[[], Path], stages: list[str]) -> None:
+        """``<hub>/models/<org>/<name>``: the checkpoint with its card (test metrics, the learning
+        curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it)."""
+        from ..data.hub import push_policy_to_dir
+
+        hub, repo = self.paths.hub, f"{self.cfg.hub_org}/{name}"
+        metrics = self.paths.eval_dir(task, ev.name) / "metrics.json"
+        argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={ev.policy}",
+                f"--repo_id={repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
+        times = self.runner.wall_times()
+        recipe = {"command": self.command, "machine": machine_description(),
+                  "wall_time_s": {n: times[n] for n in [*stages, eval_stage(task, ev.name)] if n in times}}
+
+        def run() -> None:
+            path = curve()
+            push_policy_to_dir(ev.policy, repo, hub, True, metrics, path if path.exists() else None, recipe)
+
+        done = (hub / "models" / repo).exists() and not self.cfg.rerun_eval
+        self.runner.run(push_policy_stage(task, name), argv, done, run)

@@ -1,0 +1,146 @@
+"""The docs' results and baseline tables come from one source: ``make tables``
+(``lerobot_crowdnav.evaluation.tables``) writes them from docs/data/, the CSV tables of
+``make main``'s report and of ``lerobot-crowdnav-baselines``. A committed table that differs from
+what the command writes fails here; so does a command that writes other numbers than it reads."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from lerobot_crowdnav.evaluation.baselines import TABLES, _slug
+from lerobot_crowdnav.evaluation.report import (Row, boundary_audit, cell, csv_table, markdown_table, parameter_table,
+                                                 wall_audit)
+from lerobot_crowdnav.evaluation.tables import BLOCKS, DOCS, ROOT, MAIN_TABLES, TablesConfig, regenerate, tables
+
+DATA = ROOT / "docs" / "data"
+
+
+def blocks(text: str) -> dict[str, str]:
+    return {m[1]: m[2] for m in re.finditer(r"<!-- table:([\w-]+) -->\n(.*?)\n?<!-- /table -->", text, re.S)}
+
+
+def outside(text: str) -> str:
+    return re.sub(r"<!-- table:([\w-]+) -->\n.*?<!-- /table -->", r"<\1>", text, flags=re.S)
+
+
+def test_committed_tables_are_what_make_tables_writes():
+    """Run `make tables` (or python -m lerobot_crowdnav.evaluation.tables) and commit the result."""
+    used = set()
+    for doc in DOCS:
+        text = (ROOT / doc).read_text()
+        assert regenerate(text, DATA) == text, f"{doc}: a generated table differs from docs/data (run: make tables)"
+        used |= set(blocks(text))
+    assert used == set(BLOCKS), "every generated table appears in a doc"
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 150
+
+
+def test_check_mode_finds_a_hand_edited_number_and_a_rerun_restores_it(tmp_path):
+    for doc in DOCS:
+        (tmp_path / doc).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ROOT / doc, tmp_path / doc)
+    shutil.copytree(DATA, tmp_path / "docs" / "data")
+    results = tmp_path / "docs" / "results.md"
+    committed = results.read_text()
+    results.write_text(committed.replace("| PDPO (H = 5, fine-tuned) | 73.2 |", "| PDPO (H = 5, fine-tuned) | 73.3 |", 1))
+    assert results.read_text() != committed
+    with pytest.raises(SystemExit):
+        tables(TablesConfig(root=tmp_path, check=True))
+    assert tables(TablesConfig(root=tmp_path)) == [results] and results.read_text() == committed
+
+
+def metrics(sr: float, n: int, *, bounded: bool, seed: int) -> dict:
+    """Hand-made metrics.json: ``n`` episodes, the first ``round(sr * n)`` successes."""
+    k = round(sr * n)
+    events = ["success"] * k + ["human_collision", "wall_collision", "timeout"] * n
+    episodes = [{"event": e, "steps": 1 if (i + seed) % 7 == 0 else 30, "goal": [5.9 if i % 5 == 0 else 1.0, 0.0],
+                 "out_of_bounds": i % 3 == 0} for i, e in enumerate(events[:n])]
+    return {"sr": k / n, "nt": 10.0 + seed / 3, "pl": 7.0 + seed / 7, "itr": 0.01 * seed, "sd": 0.3 + seed / 1000,
+            "cr": 1 - k / n - 0.01 * seed, "tr": 0.01 * seed, "oob": None if bounded else 0.1 + seed / 100,
+            "cr_human": 0.2, "cr_wall": 0.1, "n_episodes": n, "env": {"arena_size": 6.0, "robot_radius": 0.3},
+            "episodes": episodes}
+
+
+def test_the_command_writes_what_it_reads(tmp_path):
+    """From hand-made runs: a `make main` run folder (the report's CSVs, two seeds in a row) and a
+    lerobot-crowdnav-baselines output directory; every generated table carries their numbers, as
+    the report itself writes them, and nothing outside the markers changes."""
+    run, base, root = tmp_path / "main", tmp_path / "baselines", tmp_path / "repo"
+    (run / "tables").mkdir(parents=True)
+    main_rows = {}
+    for i, short in enumerate(("bounded", "original")):
+        labels = ["ORCA (look-ahead)", "straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"]
+        main_rows[short] = [Row(label, [metrics(0.1 + 0.2 * j + 0.05 * i, 40, bounded=short == "bounded", seed=j + s)
+                                        for s in range(1 + (j == 3))]) for j, label in enumerate(labels)]
+        (run / "tables" / f"results_{short}.csv").write_text(csv_table(main_rows[short]))
+    (run / "tables" / "wall_audit.csv").write_text(wall_audit(main_rows["bounded"])[1])
+    (run / "tables" / "boundary_audit.csv").write_text(boundary_audit(main_rows["original"])[1])
+    counts = {"Bounded CrowdNav: PDPO (H = 5, fine-tuned)": {"actor": 831_803, "critic": 197_633}}
+    (run / "tables" / "parameters.csv").write_text(parameter_table(counts)[1])
+    baseline_rows = {}
+    for t, key in enumerate(("bounded_paper", "original_paper", "crowdnavpp_orca_baseline")):
+        _, env, names = TABLES[key]
+        baseline_rows[key] = []
+        for j, name in enumerate(names):
+            m = metrics(0.3 + 0.1 * j + 0.02 * t, 50, bounded=env["task"] == "BoundedCrowdNav-v0", seed=10 + j)
+            (base / key / _slug(name)).mkdir(parents=True)
+            (base / key / _slug(name) / "metrics.json").write_text(json.dumps(m))
+            baseline_rows[key].append(Row(name, [m]))
+    for doc in DOCS:
+        (root / doc).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ROOT / doc, root / doc)
+    before = {doc: (root / doc).read_text() for doc in DOCS}
+
+    tables(TablesConfig(main=run, baselines=base, root=root))
+    data = root / "docs" / "data"
+    for name in MAIN_TABLES:  # the report's CSVs, as they are
+        assert (data / "main" / name).read_bytes() == (run / "tables" / name).read_bytes()
+    after = {doc: (root / doc).read_text() for doc in DOCS}
+    for doc in DOCS:
+        assert outside(after[doc]) == outside(before[doc])
+        assert blocks(after[doc]) != blocks(before[doc])
+    got = {**blocks(after["README.md"]), **blocks(after["docs/results.md"])}
+
+    # The main job's tables: exactly the report's own (markdown_table from the metrics themselves).
+    assert got["main-bounded"] == markdown_table(main_rows["bounded"])
+    assert got["main-original"] == markdown_table(main_rows["original"])
+    assert "± " in got["main-bounded"]  # the two-seed row: mean ± std, as in the report
+    readme = got["main"].splitlines()
+    assert readme[0] == "| benchmark | Method | SR (%) | SR 95 % CI | NT (s) | PL (m) | ITR (%) | SD (m) |"
+    assert readme[2:] == [f"| {b} |{line[1:]}" for b, short in (("Bounded", "bounded"), ("original", "original"))
+                          for line in markdown_table(main_rows[short]).splitlines()[2:]]
+    assert got["boundary-audit"] == boundary_audit(main_rows["original"])[0]
+    assert got["parameters"] == parameter_table(counts)[0]
+    wall = wall_audit(main_rows["bounded"])[0].splitlines()
+    current = wall_audit(baseline_rows["bounded_paper"])[0].splitlines()[3]  # the current-state row
+    assert got["wall-audit"].splitlines() == [*wall[:3], current.replace("| ORCA current-state |",
+                                                                         "| ORCA current-state (baseline below) |"), *wall[3:]]
+
+    # The baselines: each cell as the report computes it from that row's metrics.json.
+    def line(first: list[str], row: Row, columns: list[str], blank: str = "") -> str:
+        return "| " + " | ".join([*first, row.label, *("-" if c == blank else cell(row, c)[0] for c in columns)]) + " |"
+
+    columns = ["SR", "SR95", "NT", "PL", "ITR", "SD", "CR", "TR", "OOB"]
+    assert got["baselines-paper"].splitlines()[2:] == (
+        [line(["Bounded"], r, columns, "OOB") for r in baseline_rows["bounded_paper"]]
+        + [line(["original"], r, columns) for r in baseline_rows["original_paper"]])
+    assert got["crowdnavpp-orca-baseline"].splitlines()[2:] == [line([], baseline_rows["crowdnavpp_orca_baseline"][1],
+                                                                     columns[:-1])]
+
+    # Rerunning from the data now committed changes nothing.
+    assert tables(TablesConfig(root=root)) == []
+
+
+def test_bad_markers_and_missing_rows_are_errors(tmp_path):
+    with pytest.raises(ValueError, match="unknown table"):
+        regenerate("<!-- table:nope -->\n<!-- /table -->\n", DATA)
+    with pytest.raises(ValueError, match="without its"):
+        regenerate("<!-- table:main -->\n| a |\n", DATA)
+    (tmp_path / "main").mkdir()
+    (tmp_path / "main" / "wall_audit.csv").write_text("method,episodes\nstraight,500\n")
+    with pytest.raises(ValueError, match="no row 'ORCA"):
+        regenerate("<!-- table:wall-audit -->\n<!-- /table -->\n", tmp_path)
