@@ -2,6 +2,7 @@
 
     lerobot-crowdnav-baselines                       # every row, 500 test episodes each
     lerobot-crowdnav-baselines --only='[bounded_paper]' --n_episodes=100
+    lerobot-crowdnav-baselines --only='[generalization]'   # the crowd-generalization table
 
 Runs ``lerobot-crowdnav-eval`` for each row of :data:`TABLES` (both ORCA robots, wall-unaware and
 wall-aware in Bounded, straight; both variants, both presets, randomized attributes on and off,
@@ -9,6 +10,14 @@ and CrowdNav++'s ORCA-baseline configuration) on the same test seeds, one ``metr
 row under ``<output_dir>/<table>/<row>/``, then writes ``<output_dir>/baselines.md`` (the tables
 with wall times, as in docs/simulator.md, and each Bounded table's wall audit). Rerunning skips
 rows whose metrics exist for the same episode count, so an interrupted run resumes.
+
+``generalization`` (only when named in ``--only``) is the crowd-generalization table: the ORCA and
+straight baselines and every trained model found in ``--models`` (the shipped ones by default),
+on each benchmark, under the four crowd settings of ``sim.config.CROWDS`` (the crowd the policies
+were trained in; reactive ORCA humans; social-force humans; both), with the outcome split
+(success, human and wall collisions, timeouts). One ``metrics.json`` per row under
+``<output_dir>/generalization/<task>/<crowd>/<row>/``; the tables go to
+``<output_dir>/generalization.md`` (and into ``baselines.md`` when run with the other tables).
 """
 
 from __future__ import annotations
@@ -17,9 +26,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import math
+
 from ..cli import run_cli
-from ..sim.config import CrowdSimConfig
-from .eval import EvalConfig, EvalSettings, OrcaPolicyConfig, StraightPolicyConfig, evaluate
+from ..sim.config import CROWDS, TASKS, CrowdSimConfig
+from .eval import (EvalConfig, EvalSettings, OrcaPolicyConfig, PretrainedPolicyConfig, RobotPolicyConfig,
+                   StraightPolicyConfig, evaluate)
 from .metrics import markdown_header, markdown_row
 from .report import Row, wall_audit
 
@@ -55,15 +67,40 @@ TABLES: dict[str, tuple[str, dict, dict[str, dict | None]]] = {
 }
 
 
+GENERALIZATION = "generalization"
+# The trained models shipped in the repository (hub format), named as the main job finds them
+# (lerobot_crowdnav/main/sources.py, shipped_names): model directory (per benchmark) -> row label.
+SHIPPED_MODELS = Path(__file__).resolve().parents[2] / "models" / "lerobot-crowdnav"
+SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
+MODEL_ROWS = {"pdpo_{short}_h1": "PDPO w/o action chunk (H = 1, fine-tuned)",
+              "pdpo_{short}_h5": "PDPO (H = 5, fine-tuned)", "crowdnavpp_{short}": "CrowdNav++ (Const. Vel.)"}
+GENERALIZATION_BASELINES = {"ORCA look-ahead": LA, "ORCA current-state": CS, "straight": None}
+CROWD_LABELS = {"orca": "trained (ORCA)", "reactive_orca": "reactive ORCA", "social_force": "social force",
+                "reactive_social_force": "reactive social force"}
+
+
 @dataclass
 class BaselinesConfig:
     # Test episodes per row (the paper: 500).
     n_episodes: int = 500
     # Environments stepped together per evaluation.
     batch_size: int = 250
-    # Table keys to run (default: all): bounded_paper, original_paper, bounded_crowdnavpp,
-    # original_crowdnavpp, bounded_crowdnavpp_fixed, original_crowdnavpp_fixed, crowdnavpp_orca_baseline.
+    # Table keys to run (default: all but generalization): bounded_paper, original_paper,
+    # bounded_crowdnavpp, original_crowdnavpp, bounded_crowdnavpp_fixed, original_crowdnavpp_fixed,
+    # crowdnavpp_orca_baseline; generalization: the baselines and trained models under the four
+    # crowd settings (reactive and social-force humans), only when named.
     only: list[str] = field(default_factory=list)
+    # generalization: the directory of trained models (hub format, named pdpo_<bounded|original>_h<H>
+    # and crowdnavpp_<bounded|original>) whose rows join the baselines'; null: baselines only.
+    models: Path | None = SHIPPED_MODELS
+    # generalization: the benchmarks (CrowdNav-v0, BoundedCrowdNav-v0) and the simulator preset.
+    generalization_tasks: list[str] = field(default_factory=lambda: ["BoundedCrowdNav-v0", "CrowdNav-v0"])
+    generalization_preset: str = "paper"
+    # generalization: the crowd settings (keys of sim.config.CROWDS; the first is the reference
+    # of the "SR change" column: the crowd the policies were trained in).
+    crowds: list[str] = field(default_factory=lambda: list(CROWDS))
+    # generalization: torch device of the trained policies.
+    device: str = "cpu"
     # Where the per-row metrics.json files and baselines.md go.
     output_dir: Path = Path("outputs/baselines")
 
@@ -72,24 +109,100 @@ def _slug(name: str) -> str:
     return name.lower().replace(",", "").replace(" ", "_").replace("-", "_")
 
 
-def run_row(cfg: BaselinesConfig, env: dict, overrides: dict | None, out: Path) -> dict:
-    """One row's metrics, from its metrics.json when that holds the same episode count."""
+def run_row(cfg: BaselinesConfig, env: dict, overrides: dict | None, out: Path,
+            policy: RobotPolicyConfig | None = None) -> dict:
+    """One row's metrics, from its metrics.json when that holds the same episode count (and, for a
+    trained model, is newer than its weights). ``policy`` defaults to the ORCA robot, or straight
+    when ``overrides`` is None."""
     path = out / "metrics.json"
     if path.exists():
         result = json.loads(path.read_text())
-        if result["n_episodes"] == cfg.n_episodes:
+        weights = Path(policy.path) / "model.safetensors" if isinstance(policy, PretrainedPolicyConfig) else None
+        fresh = weights is None or not weights.exists() or path.stat().st_mtime >= weights.stat().st_mtime
+        if result["n_episodes"] == cfg.n_episodes and fresh:
             return result
-    policy = StraightPolicyConfig() if overrides is None else OrcaPolicyConfig()
+    if policy is None:
+        policy = StraightPolicyConfig() if overrides is None else OrcaPolicyConfig()
     return evaluate(EvalConfig(env=CrowdSimConfig(**env, **(overrides or {})), policy=policy,
                                eval=EvalSettings(n_episodes=cfg.n_episodes, split="test",
                                                  batch_size=cfg.batch_size),
                                output_dir=out, overwrite=True))
 
 
+def trained_models(models: Path | None, task: str) -> dict[str, Path]:
+    """Row label -> model directory, for the trained models of ``task`` present in ``models``."""
+    if models is None:
+        return {}
+    found = {}
+    for name, label in MODEL_ROWS.items():
+        path = Path(models) / name.format(short=SHORT[task])
+        if (path / "model.safetensors").exists():
+            found[label] = path
+    return found
+
+
+def _num(value: float | None, scale: float = 100.0, digits: int = 1) -> str:
+    """A metric as a table cell (rates in % by default); ``n/a`` for a missing or NaN value (NT
+    with no success, saved as null)."""
+    return "n/a" if value is None or math.isnan(value) else f"{scale * value:.{digits}f}"
+
+
+def generalization(cfg: BaselinesConfig, machines: set[str]) -> str:
+    """The crowd-generalization tables (markdown): per benchmark, a summary of SR by crowd and the
+    outcome split of every (policy, crowd) row."""
+    sections = []
+    for task in cfg.generalization_tasks:
+        bounded = task == "BoundedCrowdNav-v0"
+        env = dict(task=task, preset=cfg.generalization_preset)
+        # row label -> (env overrides, policy, output folder name)
+        policies: dict[str, tuple[dict | None, RobotPolicyConfig | None, str]] = {
+            name: (overrides, None, _slug(name)) for name, overrides in GENERALIZATION_BASELINES.items()}
+        for label, path in trained_models(cfg.models, task).items():
+            policies[label] = ({}, PretrainedPolicyConfig(path=path, device=cfg.device), path.name)
+        results: dict[str, dict[str, dict]] = {}
+        for name, (overrides, policy, slug) in policies.items():
+            for crowd in cfg.crowds:
+                out = cfg.output_dir / GENERALIZATION / SHORT[task] / crowd / slug
+                result = run_row(cfg, {**env, **CROWDS[crowd]}, overrides, out, policy)
+                machines.add(result["machine"])
+                results.setdefault(name, {})[crowd] = result
+        title = f"{'Bounded' if bounded else 'original'} CrowdNav, `{cfg.generalization_preset}` preset"
+        ref = cfg.crowds[0]
+        summary = ["| policy | " + " | ".join(f"SR (%), {CROWD_LABELS[c]}" for c in cfg.crowds) + " |",
+                   "|---|" + "---|" * len(cfg.crowds)]
+        for name, by_crowd in results.items():
+            summary.append(f"| {name} | " + " | ".join(_num(by_crowd[c]["sr"]) for c in cfg.crowds) + " |")
+        wall = ["wall CR (%)"] if bounded else []
+        split = ["| policy | crowd | SR (%) | SR change (points) | human CR (%) | "
+                 + "".join(f"{c} | " for c in wall) + "TR (%) | NT (s) | ITR (%) |",
+                 "|---|---|---|---|---|" + "---|" * len(wall) + "---|---|---|"]
+        for name, by_crowd in results.items():
+            for crowd in cfg.crowds:
+                r = by_crowd[crowd]
+                change = "-" if crowd == ref else f"{100 * (r['sr'] - by_crowd[ref]['sr']):+.1f}"
+                split.append(f"| {name} | {CROWD_LABELS[crowd]} | {_num(r['sr'])} | {change} | "
+                             f"{_num(r['cr_human'])} | " + "".join(f"{_num(r['cr_wall'])} | " for _ in wall)
+                             + f"{_num(r['tr'])} | {_num(r['nt'], 1.0, 2)} | {_num(r['itr'])} |")
+        sections.append("\n".join([f"### Crowd generalization: {title}\n", *summary, "",
+                                   f"Outcome split (SR change: against the {CROWD_LABELS[ref]} crowd):", "",
+                                   *split]) + "\n")
+    crowds = "; ".join(f"{CROWD_LABELS[c]}: `{', '.join(f'{k}={v}' for k, v in CROWDS[c].items())}`"
+                       for c in cfg.crowds)
+    return "\n".join([f"Every policy on the first {cfg.n_episodes} test seeds in the crowd the trained policies were "
+                      f"trained in and in crowds they never saw ({crowds}; docs/simulator.md, \"Crowd models\"). "
+                      "Rates in % of the episodes.\n", *sections])
+
+
 def baselines(cfg: BaselinesConfig) -> str:
-    unknown = set(cfg.only) - set(TABLES)
+    unknown = set(cfg.only) - set(TABLES) - {GENERALIZATION}
     if unknown:
-        raise ValueError(f"unknown tables {sorted(unknown)}; choose from {', '.join(TABLES)}")
+        raise ValueError(f"unknown tables {sorted(unknown)}; choose from {', '.join([*TABLES, GENERALIZATION])}")
+    bad_crowds = [c for c in cfg.crowds if c not in CROWDS]
+    if bad_crowds or not cfg.crowds:
+        raise ValueError(f"--crowds must list some of {', '.join(CROWDS)}, got {cfg.crowds}")
+    bad_tasks = [t for t in cfg.generalization_tasks if t not in TASKS]
+    if bad_tasks:
+        raise ValueError(f"unknown generalization_tasks {bad_tasks}; choose from {', '.join(TASKS)}")
     sections, machines = [], set()
     for key, (title, env, rows) in TABLES.items():
         if cfg.only and key not in cfg.only:
@@ -111,9 +224,16 @@ def baselines(cfg: BaselinesConfig) -> str:
             md, _, facts = wall_audit(audited)
             lines += ["", f"Wall audit (% of the episodes; `evaluation/metrics.outcome`). {facts}", "", md]
         sections.append("\n".join(lines) + "\n")
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    if GENERALIZATION in cfg.only:
+        table = generalization(cfg, machines)
+        (cfg.output_dir / "generalization.md").write_text(table)
+        if not sections:  # the generalization table alone: baselines.md is left as it is
+            print(table)
+            return table
+        sections.append(table)
     text = "\n".join([f"Baselines on the first {cfg.n_episodes} test seeds (`lerobot-crowdnav-baselines`; "
                       f"wall times on {', '.join(sorted(machines))}).\n", *sections])
-    cfg.output_dir.mkdir(parents=True, exist_ok=True)
     (cfg.output_dir / "baselines.md").write_text(text)
     print(text)
     return text

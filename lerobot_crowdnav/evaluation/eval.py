@@ -163,7 +163,9 @@ def evaluate(cfg: EvalConfig) -> dict:
                 actor.chunk = None  # a new episode
                 step_policy = lambda o: actor(o[None], np.zeros(1, bool))[0]  # noqa: E731
             record_episode(single, out / "videos" / f"{policy.replace('@', '_')}_seed{seed}.gif", seed, step_policy)
-    print(f"\n{sim_cfg.task} ({sim_cfg.preset}), policy {result['policy_description']}, {len(records)} {cfg.eval.split} episodes:")
+    crowd = "" if (sim_cfg.human_policy, sim_cfg.robot_visible) == ("orca", False) else f", {sim_cfg.crowd_description}"
+    print(f"\n{sim_cfg.task} ({sim_cfg.preset}{crowd}), policy {result['policy_description']}, "
+          f"{len(records)} {cfg.eval.split} episodes:")
     print(markdown_header(sim_cfg.bounded))
     print(result["markdown"])
     print(f"wrote {metrics_path}")

@@ -4,8 +4,12 @@ Measures env-steps/s (one env-step = one environment advanced by dt) through the
 the native batched env (``CrowdNavVectorEnv``, autoreset and info included) for each batch size
 with random actions (training mode: no intrusion look-ahead), random actions with the intrusion
 metrics, and the built-in ORCA robot; and the single-env gymnasium API (``gym.make`` + ``step``)
-with random actions and in test mode (ORCA robot, intrusion metrics on).
-Each figure is the median of ``--repeats`` timed runs after a warm-up.
+with random actions and in test mode (ORCA robot, intrusion metrics on). The other crowd models
+(``--crowds``: reactive ORCA humans, social-force humans, both; docs/simulator.md, "Crowd
+models") add rows with random actions and with the ORCA robot, each with its cost per env-step
+relative to the benchmark's own crowd (``orca``) at the same batch size and actions: the crowds'
+runs interleaved, the median of the per-repeat ratios. Each figure is the median of ``--repeats``
+timed runs after a warm-up.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from ..cli import machine_description
-from .config import CrowdSimConfig
+from .config import CROWDS, CrowdSimConfig
 from .envs import CrowdNavVectorEnv
 
 
@@ -37,15 +41,18 @@ class BenchmarkConfig:
     repeats: int = 5
     # Env-steps per timed run (divided among the batch), roughly.
     steps_per_run: int = 100_000
+    # Crowd models timed besides the benchmark's own (orca): any of reactive_orca, social_force,
+    # reactive_social_force (random actions and the ORCA robot at every batch size).
+    crowds: list[str] = field(default_factory=lambda: ["reactive_orca", "social_force", "reactive_social_force"])
     # Also write the table and raw timings as JSON here.
     output: Path | None = None
 
 
-def _time_vector(cfg: BenchmarkConfig, batch: int, mode: str, seed: int) -> float:
+def _time_vector(cfg: BenchmarkConfig, batch: int, mode: str, seed: int, crowd: str = "orca") -> float:
     intrusion = mode == "random + intrusion"
     env = CrowdNavVectorEnv(batch, robot_policy="orca" if mode == "orca robot" else None,
                             config=CrowdSimConfig(task=cfg.task, preset=cfg.preset,
-                                                  compute_intrusion=intrusion))
+                                                  compute_intrusion=intrusion, **CROWDS[crowd]))
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     steps = max(20, cfg.steps_per_run // batch // (4 if intrusion else 1))
@@ -79,21 +86,35 @@ def _time_single(cfg: BenchmarkConfig, mode: str, seed: int) -> float:
 def run(cfg: BenchmarkConfig) -> dict:
     if cfg.repeats < 1 or cfg.steps_per_run < 1 or any(b < 1 for b in cfg.batch_sizes):
         raise ValueError("repeats, steps_per_run and batch sizes must be >= 1")
+    unknown = [c for c in cfg.crowds if c not in CROWDS or c == "orca"]
+    if unknown:
+        raise ValueError(f"unknown crowds {unknown}; choose from {', '.join(c for c in CROWDS if c != 'orca')}")
     CrowdSimConfig(task=cfg.task, preset=cfg.preset).resolve()
     rows = []
     for batch in cfg.batch_sizes:
         for mode in ("random", "random + intrusion", "orca robot"):
-            rates = [_time_vector(cfg, batch, mode, seed=r) for r in range(cfg.repeats)]
-            rows.append({"api": "CrowdNavVectorEnv", "batch": batch, "mode": mode,
-                         "median_steps_per_s": statistics.median(rates), "runs": rates})
-            print(f"B={batch:5d} {mode:20s} {statistics.median(rates):12,.0f} env-steps/s", flush=True)
+            crowds = ["orca", *cfg.crowds] if mode != "random + intrusion" else ["orca"]
+            runs = {crowd: [] for crowd in crowds}
+            for r in range(cfg.repeats):  # crowds interleaved: their ratios see the same machine load
+                for crowd in crowds:
+                    runs[crowd].append(_time_vector(cfg, batch, mode, seed=r, crowd=crowd))
+            for crowd, rates in runs.items():
+                rate = statistics.median(rates)
+                # Paired by repeat (the runs beside each other saw the same load), then the median.
+                cost = statistics.median(b / r for b, r in zip(runs["orca"], rates))
+                rows.append({"api": "CrowdNavVectorEnv", "batch": batch, "mode": mode, "crowd": crowd,
+                             "median_steps_per_s": rate, "runs": rates, "cost_vs_orca": cost})
+                print(f"B={batch:5d} {mode:20s} {crowd:22s} {rate:12,.0f} env-steps/s "
+                      f"({cost:.2f}x the cost of orca)", flush=True)
     for mode in ("random", "orca robot + intrusion"):
         rates = [_time_single(cfg, mode, seed=r) for r in range(cfg.repeats)]
-        rows.append({"api": "gym.make (single env)", "batch": 1, "mode": mode,
+        rows.append({"api": "gym.make (single env)", "batch": 1, "mode": mode, "crowd": "orca",
                      "median_steps_per_s": statistics.median(rates), "runs": rates})
-        print(f"single env   {mode:20s} {statistics.median(rates):12,.0f} env-steps/s", flush=True)
-    lines = ["| API | B | actions | env-steps/s (median) |", "|---|---|---|---|"]
-    lines += [f"| {r['api']} | {r['batch']} | {r['mode']} | {r['median_steps_per_s']:,.0f} |" for r in rows]
+        print(f"single env   {mode:20s} {'orca':22s} {statistics.median(rates):12,.0f} env-steps/s", flush=True)
+    lines = ["| API | B | actions | crowd | env-steps/s (median) | cost per env-step vs orca |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r['api']} | {r['batch']} | {r['mode']} | {r['crowd']} | {r['median_steps_per_s']:,.0f} | "
+              + (f"{r['cost_vs_orca']:.2f}x |" if "cost_vs_orca" in r else "- |") for r in rows]
     table = "\n".join(lines)
     result = {"machine": machine_description(), "task": cfg.task, "preset": cfg.preset,
               "repeats": cfg.repeats, "rows": rows, "markdown": table}

@@ -27,6 +27,20 @@ human from the robot's memory, last observed state, extrapolated while out of si
 away until first seen."""
 """``CrowdNav-v0``: the original benchmark, no boundary. ``BoundedCrowdNav-v0``: walls on the
 boundary of the ``[-arena_size, arena_size]^2`` workspace; touching one is a collision."""
+HUMAN_POLICIES = ("orca", "social_force")
+"""The humans' policies of CrowdNav++ (``humans.policy``; docs/simulator.md, "Crowd models").
+``orca``: RVO2 with every other human as an agent (the benchmark's crowd). ``social_force``:
+CrowdNav++'s ``SOCIAL_FORCE`` policy, a goal pull and exponential repulsion from every other agent
+(``sf.A``, ``sf.B``, ``sf.KI``)."""
+CROWDS: dict[str, dict] = {
+    "orca": dict(robot_visible=False, human_policy="orca"),
+    "reactive_orca": dict(robot_visible=True, human_policy="orca"),
+    "social_force": dict(robot_visible=False, human_policy="social_force"),
+    "reactive_social_force": dict(robot_visible=True, human_policy="social_force"),
+}
+"""The four crowd settings of the generalization table and the benchmark (docs/simulator.md,
+"Crowd models"): ``orca`` is the benchmark's crowd, the one every shipped policy was trained in;
+the others are crowds they never saw (the env fields each one sets)."""
 
 _COMMON = dict(
     num_humans=20,  # both: 20 humans, fixed count
@@ -61,6 +75,14 @@ _COMMON = dict(
     # CrowdNav++'s ORCA policy knows no obstacles: the robot ignores the walls (they only end its
     # episodes); the paper's Bounded ORCA row is this robot.
     orca_robot_wall_aware=False,
+    # Crowd models (CrowdNav++ config.robot.visible, config.humans.policy, config.sf). The paper's
+    # crowd ignores the robot and follows ORCA; the other settings measure trained policies in
+    # crowds they were not trained in (docs/simulator.md, "Crowd models").
+    robot_visible=False,  # robot.visible: humans' ORCA / social force counts the robot as an agent
+    human_policy="orca",  # humans.policy: orca | social_force
+    sf_a=2.0,  # sf.A: repulsion strength (m/s^2 at contact)
+    sf_b=1.0,  # sf.B: repulsion range (m)
+    sf_ki=1.0,  # sf.KI: inverse relaxation time toward the desired velocity (1/s)
     # Reward (CrowdNav++ config.reward and CrowdSimPred.calc_reward).
     success_reward=10.0,
     collision_penalty=-20.0,
@@ -171,6 +193,18 @@ class CrowdSimConfig:
     # each human those of its creation (a respawned neighbour keeps its old radius). Changes the
     # crowd for every policy. crowdnavpp: = randomize_attributes; paper: false.
     persistent_orca_sims: bool | None = None
+    # Humans react to the robot: their ORCA (or social force) counts it as an agent with its
+    # radius and current velocity (CrowdNav++ robot.visible; both presets: false, the paper's crowd).
+    robot_visible: bool | None = None
+    # The humans' policy: orca (both presets; the benchmark's crowd) or social_force (CrowdNav++'s
+    # SOCIAL_FORCE, parameters sf_a, sf_b, sf_ki): a crowd the shipped policies were not trained in.
+    human_policy: str | None = None
+    # Social force: repulsion strength A, m/s^2 at contact (CrowdNav++ sf.A = 2).
+    sf_a: float | None = None
+    # Social force: repulsion range B, m (CrowdNav++ sf.B = 1).
+    sf_b: float | None = None
+    # Social force: goal-pull gain KI = 1 / relaxation time, 1/s (CrowdNav++ sf.KI = 1).
+    sf_ki: float | None = None
     # ORCA time horizon for agents, s (5).
     orca_time_horizon: float | None = None
     # ORCA time horizon for obstacles (walls, ORCA robot only), s (5).
@@ -201,6 +235,12 @@ class CrowdSimConfig:
         """Which ORCA robot this env runs, e.g. ``orca (look_ahead)`` (resolved configs only)."""
         walls = ", wall-aware" if self.orca_robot_wall_aware and self.bounded else ""
         return f"orca ({self.orca_robot}{walls})"
+
+    @property
+    def crowd_description(self) -> str:
+        """The crowd model, e.g. ``ORCA humans, robot invisible`` (resolved configs only)."""
+        policy = {"orca": "ORCA", "social_force": "social-force"}.get(self.human_policy, self.human_policy)
+        return f"{policy} humans, robot {'visible' if self.robot_visible else 'invisible'}"
 
     def resolve(self) -> CrowdSimConfig:
         """A copy with every ``None`` replaced by the preset value, validated."""
@@ -237,6 +277,15 @@ class CrowdSimConfig:
             raise ValueError(f"goal_change_prob must be in [0, 1], got {self.goal_change_prob}")
         if self.orca_robot not in ORCA_ROBOTS:
             raise ValueError(f"unknown orca_robot {self.orca_robot!r}; choose one of {', '.join(ORCA_ROBOTS)}")
+        if self.human_policy not in HUMAN_POLICIES:
+            raise ValueError(f"unknown human_policy {self.human_policy!r}; choose one of {', '.join(HUMAN_POLICIES)}")
+        if self.robot_visible not in (True, False):
+            raise ValueError(f"robot_visible must be true or false, got {self.robot_visible!r}")
+        for name in ("sf_a", "sf_ki"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {getattr(self, name)}")
+        if not (math.isfinite(self.sf_b) and self.sf_b > 0):
+            raise ValueError(f"sf_b (the social-force range, m) must be > 0, got {self.sf_b}")
         for name in ("human_radius_range", "human_v_pref_range", "neighbor_dist_range"):
             lo, hi = getattr(self, name)
             if not 0 < lo <= hi:

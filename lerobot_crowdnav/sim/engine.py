@@ -26,6 +26,11 @@ The roll-out (robot invisible, no goal changes, no respawns) is computed at most
 as deep as needed: step 1 is the humans' actual move, steps 1..L the intrusion test's true
 futures and, with step 0, the look-ahead ORCA robot's 6 x N agents.
 
+Crowd models (docs/simulator.md, "Crowd models"): the humans follow ORCA or CrowdNav++'s social
+force (``human_policy``), in the roll-out too; with ``robot_visible`` they also count the robot
+(its position and last executed velocity) in their actual move, computed apart from the roll-out,
+which leaves the robot out as CrowdNav++'s does.
+
 Every random draw of an episode (crowd generation, goal changes, respawns) comes from the
 generator seeded with the episode seed, and no computation mixes environments, so a seed gives a
 bitwise-identical episode whatever the batch size or the slot.
@@ -43,7 +48,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from .config import ORCA_ROBOTS, CrowdSimConfig
+from .config import HUMAN_POLICIES, ORCA_ROBOTS, CrowdSimConfig
 from ..layout import SELF_DIM
 from .orca import bounding_box, compute_new_velocity, insert_sorted, make_obstacles
 
@@ -55,6 +60,7 @@ ROBOT_THETA = math.pi / 2  # holonomic robot: heading stays at its initial pi/2 
 # CrowdNav++'s stand-in for a human the robot has never seen: (15, 15), v = 0, r = 0.3.
 DUMMY_POS, DUMMY_RADIUS = 15.0, 0.3
 LOOK_AHEAD, CURRENT_STATE = 0, 1  # Params.orca_robot, in config.ORCA_ROBOTS order
+HUMANS_ORCA, HUMANS_SOCIAL_FORCE = 0, 1  # Params.human_policy, in config.HUMAN_POLICIES order
 
 _MAX_REJECTIONS = 100_000  # rejection-sampling guard for crowded custom configs
 
@@ -101,6 +107,11 @@ class Params(NamedTuple):
     pred_radius: float
     sentinel: float
     intrusion: bool
+    robot_visible: bool  # the humans count the robot as an agent (CrowdNav++ robot.visible)
+    human_policy: int  # HUMANS_ORCA or HUMANS_SOCIAL_FORCE
+    sf_a: float
+    sf_b: float
+    sf_ki: float
 
 
 def make_params(cfg: CrowdSimConfig) -> Params:
@@ -125,7 +136,9 @@ def make_params(cfg: CrowdSimConfig) -> Params:
         success_reward=cfg.success_reward, collision_penalty=cfg.collision_penalty,
         discomfort_factor=cfg.discomfort_penalty_factor, potential_factor=cfg.potential_factor,
         pred_radius=cfg.prediction_radius, sentinel=cfg.sentinel,
-        intrusion=cfg.compute_intrusion,
+        intrusion=cfg.compute_intrusion, robot_visible=bool(cfg.robot_visible),
+        human_policy=HUMAN_POLICIES.index(cfg.human_policy), sf_a=cfg.sf_a, sf_b=cfg.sf_b,
+        sf_ki=cfg.sf_ki,
     )
 
 
@@ -257,6 +270,7 @@ class Scratch(NamedTuple):
     agents_vel: np.ndarray
     candidates: np.ndarray  # (A,) 1..A-1: the robot's candidate neighbours
     order: np.ndarray  # (N,) observation sort
+    move_vel: np.ndarray  # (N, 2) the humans' move when they see the robot (robot_visible)
 
 
 @nb.njit(cache=True)
@@ -264,7 +278,8 @@ def _make_scratch(n, n_pred, k):
     m = (n_pred + 1) * n + 1
     return Scratch(np.empty((k + m, 4)), np.empty((k + m, 4)), np.empty(m, np.int64),
                    np.empty(m), np.empty(max(k, 1), np.int64), np.empty(max(k, 1)), np.empty(m),
-                   np.empty((m, 2)), np.empty((m, 2)), np.arange(1, m + 1), np.empty(n, np.int64))
+                   np.empty((m, 2)), np.empty((m, 2)), np.arange(1, m + 1), np.empty(n, np.int64),
+                   np.empty((n, 2)))
 
 
 @nb.njit(cache=True, inline="always")
@@ -301,11 +316,99 @@ def _humans_orca(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, 
 
 
 @nb.njit(cache=True)
+def _humans_orca_robot(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, no_obst, s,
+                       out, rpx, rpy, rvx, rvy):
+    """As :func:`_humans_orca`, with the robot one more agent to every human (CrowdNav++
+    ``robot.visible``): agent ``n`` of the scene, at its position with its current (last executed)
+    velocity and ORCA radius ``robot_radius + pad``, a neighbour within the neighbour distance like
+    any human. The humans' own radii are those their simulators hold, as without the robot."""
+    n = p.n_humans
+    for j in range(n):
+        s.agents_pos[j, 0], s.agents_pos[j, 1] = hp[j, 0], hp[j, 1]
+        s.agents_vel[j, 0], s.agents_vel[j, 1] = hv[j, 0], hv[j, 1]
+    s.agents_pos[n, 0], s.agents_pos[n, 1] = rpx, rpy
+    s.agents_vel[n, 0], s.agents_vel[n, 1] = rvx, rvy
+    s.radii[n] = p.robot_radius + p.orca_pad
+    for i in range(n):
+        if p.persistent:
+            if sim_nd[1 + i] == 0.0:
+                sim_r[1 + i, :] = hr
+                sim_nd[1 + i] = neighbor_dist
+            held, nd_i = sim_r[1 + i], sim_nd[1 + i]
+        else:
+            held, nd_i = hr, neighbor_dist
+        for j in range(n):
+            s.radii[j] = held[j] + p.orca_pad
+        px_, py_ = _pref_velocity(hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1])
+        out[i, 0], out[i, 1] = compute_new_velocity(
+            i, s.agents_pos, s.agents_vel, s.radii, all_idx, n + 1, hvp[i], px_, py_, nd_i, n,
+            p.time_horizon, p.time_horizon_obst, p.dt, no_obst[0], no_obst[1], no_obst[2],
+            no_obst[3], no_obst[4], s.lines, s.proj, s.nb_idx, s.nb_dist, s.ob_idx, s.ob_dist)
+
+
+@nb.njit(cache=True, inline="always")
+def _sf_push(ix, iy, px, py, r, ox, oy, o_r, p):
+    """Add the social-force repulsion of the agent at ``(ox, oy)`` (radius ``o_r``) on the one at
+    ``(px, py)`` (radius ``r``): ``A exp((r + o_r - d) / B)`` along the unit vector from the other
+    to this one (CrowdNav++ ``SOCIAL_FORCE.predict``, same operation order). Coincident centres
+    (CrowdNav++: 0 / 0 = NaN) push along +x."""
+    dx, dy = px - ox, py - oy
+    d = math.sqrt(dx * dx + dy * dy)
+    mag = p.sf_a * math.exp((r + o_r - d) / p.sf_b)
+    if d > 0.0:
+        return ix + mag * (dx / d), iy + mag * (dy / d)
+    return ix + mag, iy
+
+
+@nb.njit(cache=True)
+def _humans_social_force(hp, hv, hg, hr, hvp, p, robot, rpx, rpy, out):
+    """New velocities of all humans by CrowdNav++'s social force: ``v' = v + (KI (v_des - v) +
+    sum_j A exp((r + r_j - d_j) / B) e_j) dt``, clipped to norm v_pref, with ``v_des`` the unit
+    vector to the goal times v_pref and the sum over every other human (their true states: a
+    human sees every other one) and, with ``robot``, the robot (its radius, no ORCA pad). At the
+    goal itself (CrowdNav++: NaN) the desired velocity is 0."""
+    n = p.n_humans
+    for i in range(n):
+        vp = hvp[i]
+        gx, gy = hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1]
+        dist = math.sqrt(gx * gx + gy * gy)
+        dvx, dvy = (gx / dist * vp, gy / dist * vp) if dist > 0.0 else (0.0, 0.0)
+        ax, ay = p.sf_ki * (dvx - hv[i, 0]), p.sf_ki * (dvy - hv[i, 1])
+        ix, iy = 0.0, 0.0
+        for j in range(n):
+            if j != i:
+                ix, iy = _sf_push(ix, iy, hp[i, 0], hp[i, 1], hr[i], hp[j, 0], hp[j, 1], hr[j], p)
+        if robot:
+            ix, iy = _sf_push(ix, iy, hp[i, 0], hp[i, 1], hr[i], rpx, rpy, p.robot_radius, p)
+        vx = hv[i, 0] + (ax + ix) * p.dt
+        vy = hv[i, 1] + (ay + iy) * p.dt
+        norm = math.sqrt(vx * vx + vy * vy)
+        if norm > vp:
+            vx, vy = vx / norm * vp, vy / norm * vp
+        out[i, 0], out[i, 1] = vx, vy
+
+
+@nb.njit(cache=True)
+def _humans_act(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, no_obst, s, out,
+                robot, rpx, rpy, rvx, rvy):
+    """New velocities of all humans under the crowd model (``human_policy``); with ``robot``, the
+    robot at ``rp`` with velocity ``rv`` is one more agent to them (the roll-out passes False)."""
+    if p.human_policy == HUMANS_SOCIAL_FORCE:
+        _humans_social_force(hp, hv, hg, hr, hvp, p, robot, rpx, rpy, out)
+    elif robot:
+        _humans_orca_robot(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, no_obst,
+                           s, out, rpx, rpy, rvx, rvy)
+    else:
+        _humans_orca(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, no_obst, s, out)
+
+
+@nb.njit(cache=True)
 def _roll_out(b, depth, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r, sim_nd, fut_pos,
               fut_vel, rollout_depth, s):
     """Extend env ``b``'s roll-out of the humans to ``depth`` steps: k = 0 is the current state,
-    each further step is every human's ORCA velocity from the previous one and the move by it
-    (robot invisible, goals fixed, no respawns). Step 1 is the humans' actual next move."""
+    each further step is every human's velocity (their policy) from the previous one and the move
+    by it (robot invisible, goals fixed, no respawns). Step 1 is the humans' actual next move
+    unless they see the robot (``robot_visible``: CrowdNav++'s roll-out leaves it out even then)."""
     done = rollout_depth[b]
     if done >= depth:
         return
@@ -313,8 +416,8 @@ def _roll_out(b, depth, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r, sim
         fut_pos[b, 0] = hp[b]
         fut_vel[b, 0] = hv[b]
     for k in range(done + 1, depth + 1):
-        _humans_orca(fut_pos[b, k - 1], fut_vel[b, k - 1], hg[b], hr[b], hvp[b], sim_r[b], sim_nd[b],
-                     all_idx, p, nd[b], no_obst, s, fut_vel[b, k])
+        _humans_act(fut_pos[b, k - 1], fut_vel[b, k - 1], hg[b], hr[b], hvp[b], sim_r[b], sim_nd[b],
+                    all_idx, p, nd[b], no_obst, s, fut_vel[b, k], False, 0.0, 0.0, 0.0, 0.0)
         for i in range(p.n_humans):
             fut_pos[b, k, i, 0] = fut_pos[b, k - 1, i, 0] + fut_vel[b, k, i, 0] * p.dt
             fut_pos[b, k, i, 1] = fut_pos[b, k - 1, i, 1] + fut_vel[b, k, i, 1] * p.dt
@@ -428,14 +531,23 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
               fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
               out_intr_dist, out_distance, out_oob, s):
     n, L, dt = p.n_humans, p.n_pred, p.dt
-    # (1) Robot action, clipped by norm to v_pref; humans' ORCA from current states (step 1 of
-    # the roll-out; all L steps when the intrusion test needs the true futures).
+    # (1) Robot action, clipped by norm to v_pref; humans' velocities from current states (step 1
+    # of the roll-out; all L steps when the intrusion test needs the true futures). Humans that see
+    # the robot move by their own solve with it (its pre-move position and last velocity, as
+    # CrowdNav++'s get_human_actions), apart from the robot-blind roll-out.
     ax, ay = action[0], action[1]
     speed = math.sqrt(ax * ax + ay * ay)
     if speed > p.robot_vpref:
         ax, ay = ax * (p.robot_vpref / speed), ay * (p.robot_vpref / speed)
-    _roll_out(b, L if p.intrusion else 1, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r,
-              sim_nd, fut_pos, fut_vel, rollout_depth, s)
+    if p.robot_visible:
+        if p.intrusion:
+            _roll_out(b, L, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r, sim_nd, fut_pos,
+                      fut_vel, rollout_depth, s)
+        _humans_act(hp[b], hv[b], hg[b], hr[b], hvp[b], sim_r[b], sim_nd[b], all_idx, p, nd[b],
+                    no_obst, s, s.move_vel, True, rp[b, 0], rp[b, 1], rv[b, 0], rv[b, 1])
+    else:
+        _roll_out(b, L if p.intrusion else 1, p, no_obst, all_idx, hp, hv, hg, hr, hvp, nd, sim_r,
+                  sim_nd, fut_pos, fut_vel, rollout_depth, s)
 
     # (2) Reward and termination on the pre-move positions.
     rx, ry = rp[b, 0], rp[b, 1]
@@ -492,14 +604,20 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
                         out_intr_dist[b] = c
         out_intrusion[b] = out_intr_dist[b] < p.robot_radius + p.pred_radius
 
-    # (3) Move everyone (humans by roll-out step 1); (4) observe.
+    # (3) Move everyone (humans by roll-out step 1, or by their solve with the robot); (4) observe.
     rp[b, 0] = rx + ax * dt
     rp[b, 1] = ry + ay * dt
     rv[b, 0], rv[b, 1] = ax, ay
     out_distance[b] = 0.0 if event != RUNNING else math.sqrt(ax * ax + ay * ay) * dt
-    for i in range(n):
-        hv[b, i, 0], hv[b, i, 1] = fut_vel[b, 1, i, 0], fut_vel[b, 1, i, 1]
-        hp[b, i, 0], hp[b, i, 1] = fut_pos[b, 1, i, 0], fut_pos[b, 1, i, 1]
+    if p.robot_visible:
+        for i in range(n):
+            hv[b, i, 0], hv[b, i, 1] = s.move_vel[i, 0], s.move_vel[i, 1]
+            hp[b, i, 0] = hp[b, i, 0] + s.move_vel[i, 0] * dt
+            hp[b, i, 1] = hp[b, i, 1] + s.move_vel[i, 1] * dt
+    else:
+        for i in range(n):
+            hv[b, i, 0], hv[b, i, 1] = fut_vel[b, 1, i, 0], fut_vel[b, 1, i, 1]
+            hp[b, i, 0], hp[b, i, 1] = fut_pos[b, 1, i, 0], fut_pos[b, 1, i, 1]
     rollout_depth[b] = 0
     step_count[b] += 1
     _observe(b, p, rp, rv, rg, hp, hv, hr, seen_pos, seen_vel, seen_r, pred, visible, obs, s)
@@ -642,7 +760,7 @@ class CrowdSim:
         walls = self.config.bounded and self.config.orca_robot_wall_aware
         self.robot_obstacles = make_obstacles([bounding_box(self.config.arena_size)] if walls else [])
         self._no_obstacles = make_obstacles([])  # humans ignore walls
-        self._all_idx = np.arange(n, dtype=np.int64)
+        self._all_idx = np.arange(n + 1, dtype=np.int64)  # the humans, then the robot (robot_visible)
         self.rng = np.zeros((B, 4), np.uint64)
         self.step_count = np.zeros(B, np.int64)
         self.potential = np.zeros(B)
