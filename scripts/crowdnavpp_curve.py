@@ -1,0 +1,295 @@
+"""The CrowdNav++ baseline's learning curve so far, drawn against the reference's own reward curve
+at the same env steps (docs/crowdnavpp.md prints its output).
+
+    python scripts/crowdnavpp_curve.py --run=/work/runs/bounded_crowdnavpp/crowdnavpp/bounded_s425
+
+reads the run's ``progress.jsonl`` (one line per PPO iteration, written by
+``lerobot-crowdnav-train-ppo``; the run may still be going: the file is only read) and the
+reference's reward curve ``docs/data/crowdnavpp_reference_reward.csv``, and writes
+
+* a PNG (``--output_png``): the mean training episode reward per window of ``--window`` env steps
+  for the run and for the reference's two logged trainings, and below it the run's validation
+  success (every validation) and training success (per window);
+* a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
+  reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
+  run's training success, the latest validation success in the window, and the run's cumulative
+  training wall time (``time/wall_s``) at the window's last iteration.
+
+Windows are ``[k W, (k + 1) W)`` for W = ``--window`` env steps, an iteration or a log line
+belonging to the window of the env-step count it reports (the count at its end). The run's
+training reward and success of a window are episode-weighted: the sum over its iterations of
+``train/episode_return x train/episodes`` (resp. ``train/success_rate x train/episodes``) over
+the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window.
+The reference's value is the plain mean of ``eprewmean`` over the log lines in the window
+(``eprewmean`` being the reference's mean return of its last 100 training episodes). A window the
+run has not finished is marked "(so far)" in the table and drawn hollow.
+
+The reference CSV (columns ``env_steps`` = window centre, ``eprewmean_rand``,
+``eprewmean_non_rand``) is this reduction of ``trained_models/GST_predictor_rand/progress.csv``
+and ``trained_models/GST_predictor_non_rand/progress.csv`` of Shuijing725/CrowdNav_Prediction_AttnGraph
+(columns ``misc/nupdates``, ``misc/total_timesteps``, ``eprewmean``, ...): given
+``--reference_rand_log`` and ``--reference_non_rand_log`` (those two files), the script writes it
+to ``--reference`` first (windows the logs cover completely; an empty cell where one log has
+ended). Without ``--run`` it stops there.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from lerobot_crowdnav.cli import run_cli
+
+ROOT = Path(__file__).resolve().parents[1]
+REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
+DEFAULT_PNG = ROOT / "docs" / "figures" / "crowdnavpp_bounded_curve.png"
+REFERENCE_COLUMNS = ("eprewmean_rand", "eprewmean_non_rand")
+HEADER = ["env steps (window)", "train reward", "reference reward, rand", "reference reward, non-rand",
+          "train success (%)", "validation success (%) [at env steps]", "wall time (h, cumulative)"]
+
+
+@dataclass
+class CurveConfig:
+    # The run's folder, holding progress.jsonl (only read). Without it, only the reference CSV is
+    # (re)built, from --reference_rand_log and --reference_non_rand_log.
+    run: Path | None = None
+    # The reference's reward curve: CSV with env_steps (window centre), eprewmean_rand,
+    # eprewmean_non_rand. Read for the figure and the table; written when the two logs are given.
+    reference: Path = REFERENCE_CSV
+    # The figure to write (PNG); null to write none.
+    output_png: Path | None = DEFAULT_PNG
+    # Also write the markdown table to this file (it is always printed).
+    output_md: Path | None = None
+    # Window width in env steps; the reference CSV must have been reduced with the same width.
+    window: int = 250_000
+    # Right end of the figure's env-step axis; 0: the run's last env step rounded up to a whole
+    # million (at least 1 M).
+    x_max: int = 0
+    # Figure title; empty: one naming the run's folder, its env steps and its wall time.
+    title: str = ""
+    # The reference's own log trained_models/GST_predictor_rand/progress.csv (randomized humans),
+    # to rebuild --reference from.
+    reference_rand_log: Path | None = None
+    # The reference's own log trained_models/GST_predictor_non_rand/progress.csv (no randomized
+    # humans), to rebuild --reference from.
+    reference_non_rand_log: Path | None = None
+
+
+@dataclass
+class Window:
+    """What a run did in the window ``[k W, (k + 1) W)``."""
+
+    k: int
+    first_step: int  # env steps of the window's first and last iteration
+    last_step: int
+    episodes: int = 0  # training episodes that ended in the window
+    reward: float = math.nan  # episode-weighted training return
+    success: float = math.nan  # episode-weighted training success rate
+    val_success: float = math.nan  # latest validation success in the window
+    val_step: int | None = None
+    wall_s: float = math.nan  # cumulative training wall time at the window's last timed iteration
+    complete: bool = True
+
+
+# -- the reference ------------------------------------------------------------------------------
+
+def reference_log_windows(path: Path, window: int) -> dict[int, float]:
+    """Mean ``eprewmean`` per window of one of the reference's progress.csv files, for the windows
+    the log covers completely (its last line within one logging interval of the window's end)."""
+    with open(path, newline="") as f:
+        rows = [(int(float(r["misc/total_timesteps"])), float(r["eprewmean"])) for r in csv.DictReader(f)]
+    if len(rows) < 2:
+        raise ValueError(f"{path}: fewer than two log lines")
+    rows.sort()
+    interval = min(b[0] - a[0] for a, b in zip(rows, rows[1:], strict=False))
+    sums: dict[int, list[float]] = {}
+    for step, value in rows:
+        sums.setdefault(step // window, []).append(value)
+    last = rows[-1][0]
+    return {k: math.fsum(v) / len(v) for k, v in sorted(sums.items()) if last + interval >= (k + 1) * window}
+
+
+def write_reference(rand_log: Path, non_rand_log: Path, out: Path, window: int) -> list[dict[str, str]]:
+    """Reduce the reference's two logs to ``out`` (env_steps = window centre); returns its rows."""
+    curves = [reference_log_windows(rand_log, window), reference_log_windows(non_rand_log, window)]
+    rows = [{"env_steps": str(k * window + window // 2),
+             **{c: (f"{curve[k]:.6f}" if k in curve else "") for c, curve in zip(REFERENCE_COLUMNS, curves, strict=True)}}
+            for k in sorted(set(curves[0]) | set(curves[1]))]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["env_steps", *REFERENCE_COLUMNS], lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+    return rows
+
+
+def read_reference(path: Path, window: int) -> dict[str, dict[int, float]]:
+    """``{column: {window index: reward}}`` from the reference CSV; checks the window width."""
+    curves: dict[str, dict[int, float]] = {c: {} for c in REFERENCE_COLUMNS}
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            centre = int(r["env_steps"])
+            if (centre - window // 2) % window:
+                raise ValueError(f"{path}: env_steps {centre} is not the centre of a {window}-step window "
+                                 "(rebuild it with the same --window)")
+            for c in REFERENCE_COLUMNS:
+                if r[c] != "":
+                    curves[c][centre // window] = float(r[c])
+    return curves
+
+
+# -- the run ------------------------------------------------------------------------------------
+
+def read_progress(path: Path) -> list[dict]:
+    """The lines of a progress.jsonl, in order (a half-written last line is skipped)."""
+    rows = []
+    with open(path) as f:
+        for line in f:
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    return rows
+
+
+def run_windows(rows: list[dict], window: int) -> list[Window]:
+    """Per-window training reward and success (episode-weighted), latest validation success and
+    cumulative wall time of a run's progress lines."""
+    by_k: dict[int, list[dict]] = {}
+    for r in rows:
+        by_k.setdefault(int(r["env_steps"]) // window, []).append(r)
+    steps = sorted({int(r["env_steps"]) for r in rows})
+    interval = min((b - a for a, b in zip(steps, steps[1:], strict=False) if b > a), default=window)
+    out = []
+    for k in sorted(by_k):
+        rs = sorted(by_k[k], key=lambda r: int(r["env_steps"]))
+        w = Window(k, int(rs[0]["env_steps"]), int(rs[-1]["env_steps"]))
+        train = [r for r in rs if r.get("train/episodes") and r.get("train/episode_return") is not None]
+        w.episodes = sum(int(r["train/episodes"]) for r in train)
+        if w.episodes:
+            w.reward = math.fsum(r["train/episode_return"] * r["train/episodes"] for r in train) / w.episodes
+            w.success = math.fsum(r["train/success_rate"] * r["train/episodes"] for r in train) / w.episodes
+        val = [r for r in rs if r.get("val/success_rate") is not None]
+        if val:
+            w.val_success, w.val_step = float(val[-1]["val/success_rate"]), int(val[-1]["env_steps"])
+        timed = [r["time/wall_s"] for r in rs if r.get("time/wall_s") is not None]
+        if timed:
+            w.wall_s = float(max(timed))
+        w.complete = w.last_step + interval >= (k + 1) * window
+        out.append(w)
+    return out
+
+
+# -- outputs ------------------------------------------------------------------------------------
+
+def _num(x: float, fmt: str) -> str:
+    return "n/a" if x is None or math.isnan(x) else format(x, fmt)
+
+
+def table(windows: list[Window], reference: dict[str, dict[int, float]], window: int) -> str:
+    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    for w in windows:
+        end = (w.k + 1) * window if w.complete else w.last_step
+        span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
+        val = "" if w.val_step is None else f"{100 * w.val_success:.0f} [{w.val_step:,}]"
+        cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REFERENCE_COLUMNS),
+                 _num(100 * w.success, ".1f"), val, _num(w.wall_s / 3600, ".2f")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[int, float]], window: int,
+           out: Path, x_max: int, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    last = max(int(r["env_steps"]) for r in rows)
+    if x_max <= 0:
+        x_max = max(1, math.ceil(last / 1e6)) * 1_000_000
+    centre = {w.k: (w.k + 0.5) * window if w.complete else (w.first_step + w.last_step) / 2 for w in windows}
+    done = [w for w in windows if w.complete and w.episodes]
+    partial = [w for w in windows if not w.complete and w.episodes]
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True, height_ratios=(3, 2))
+    for c, label, colour in ((REFERENCE_COLUMNS[0], "reference (GST_predictor_rand)", "tab:gray"),
+                             (REFERENCE_COLUMNS[1], "reference (GST_predictor_non_rand)", "black")):
+        ks = [k for k in sorted(reference[c]) if k * window < x_max]
+        top.plot([(k + 0.5) * window for k in ks], [reference[c][k] for k in ks], "-", color=colour, lw=1.2,
+                 label=label)
+    top.plot([centre[w.k] for w in done], [w.reward for w in done], "o-", color="tab:blue", label="this run")
+    if partial:
+        top.plot([centre[w.k] for w in partial], [w.reward for w in partial], "o", mfc="none", color="tab:blue",
+                 label="this run, window so far")
+    top.set_ylabel(f"training episode reward\n(mean per {window / 1e6:g} M env steps)")
+    top.grid(alpha=0.3)
+    top.legend(fontsize=8, loc="lower right")
+
+    val = [(int(r["env_steps"]), 100 * r["val/success_rate"]) for r in rows if r.get("val/success_rate") is not None]
+    bottom.plot([s for s, _ in val], [v for _, v in val], "s-", color="tab:green", label="validation success")
+    bottom.plot([centre[w.k] for w in done], [100 * w.success for w in done], "o-", color="tab:orange",
+                label="training success (per window)")
+    if partial:
+        bottom.plot([centre[w.k] for w in partial], [100 * w.success for w in partial], "o", mfc="none",
+                    color="tab:orange")
+    bottom.set_ylabel("this run: success (%)")
+    bottom.set_xlabel("env steps")
+    bottom.set_ylim(bottom=0)
+    bottom.grid(alpha=0.3)
+    bottom.legend(fontsize=8, loc="upper left")
+    bottom.set_xlim(0, x_max)
+    bottom.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1e6:g} M" if x else "0"))
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def curve(cfg: CurveConfig) -> str | None:
+    """Rebuild the reference CSV if asked, then write the run's figure and table; returns the table."""
+    logs = (cfg.reference_rand_log, cfg.reference_non_rand_log)
+    if any(logs):
+        if not all(logs):
+            raise ValueError("--reference_rand_log and --reference_non_rand_log go together")
+        for log in logs:
+            if not Path(log).exists():
+                raise FileNotFoundError(f"{log}: no such file")
+        rows = write_reference(Path(logs[0]), Path(logs[1]), Path(cfg.reference), cfg.window)
+        print(f"wrote {cfg.reference} ({len(rows)} windows of {cfg.window:,} env steps)")
+    if cfg.run is None:
+        if not any(logs):
+            raise ValueError("give --run=DIR (a folder with progress.jsonl), or the two reference logs")
+        return None
+    progress = Path(cfg.run) / "progress.jsonl"
+    if not progress.exists():
+        raise FileNotFoundError(f"{progress}: no such file")
+    rows = read_progress(progress)
+    if not rows:
+        raise ValueError(f"{progress}: no progress lines")
+    windows = run_windows(rows, cfg.window)
+    reference = read_reference(Path(cfg.reference), cfg.window)
+    text = table(windows, reference, cfg.window)
+    print(text)
+    if cfg.output_md:
+        Path(cfg.output_md).parent.mkdir(parents=True, exist_ok=True)
+        Path(cfg.output_md).write_text(text + "\n")
+    if cfg.output_png is not None:
+        last = max(rows, key=lambda r: int(r["env_steps"]))
+        walls = [r["time/wall_s"] for r in rows if r.get("time/wall_s") is not None]
+        title = cfg.title or (f"{Path(cfg.run).resolve().name}: {int(last['env_steps']):,} env steps"
+                              + (f", {max(walls) / 3600:.1f} h of training" if walls else ""))
+        figure(windows, rows, reference, cfg.window, Path(cfg.output_png), cfg.x_max, title)
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    run_cli(CurveConfig, curve, argv)
+
+
+if __name__ == "__main__":
+    main()

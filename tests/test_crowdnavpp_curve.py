@@ -1,0 +1,167 @@
+"""scripts/crowdnavpp_curve.py: the CrowdNav++ run's learning curve against the reference's reward
+curve. Windowed means on a hand-made progress.jsonl and hand-made reference logs whose answers are
+worked out below, the committed reference CSV (its shape, and its first windows recomputed from
+the reference's own first log lines), and the CLI writing the figure and the table."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+ROOT = Path(__file__).parents[1]
+spec = importlib.util.spec_from_file_location("crowdnavpp_curve", ROOT / "scripts/crowdnavpp_curve.py")
+curve_mod = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # dataclasses look it up
+spec.loader.exec_module(curve_mod)
+
+W = 1000  # window width of the synthetic data
+
+
+def it(step, episodes, ret=None, sr=None, **extra):
+    """One PPO iteration line as lerobot-crowdnav-train-ppo writes it (no train/* but the count when
+    no episode ended)."""
+    row = {"iteration": step // 200, "env_steps": step, "train/episodes": episodes, "time/wall_s": step / 10}
+    if episodes:
+        row |= {"train/episode_return": ret, "train/success_rate": sr}
+    return row | extra
+
+
+# Window 0 [0, 1000): a validation line at 0, an iteration without episodes, a validation at 800.
+# Window 1 [1000, 2000): no validation. Window 2 [2000, 3000): reached up to 2200 only (so far).
+PROGRESS = [
+    {"iteration": 0, "env_steps": 0, "val/success_rate": 0.0, "val/episode_return": -20.0},
+    it(200, 2, -10.0, 0.0), it(400, 0), it(600, 3, -5.0, 1 / 3), it(800, 5, 1.0, 0.4, **{"val/success_rate": 0.25}),
+    it(1000, 4, 2.0, 0.5), it(1200, 4, 4.0, 0.25), it(1400, 2, -1.0, 0.0), it(1600, 0), it(1800, 10, 3.0, 0.6),
+    it(2000, 1, 7.0, 1.0), it(2200, 3, 3.0, 1 / 3, **{"val/success_rate": 0.5}),
+]
+# Episode-weighted by hand: window 0 (2 * -10 + 3 * -5 + 5 * 1) / 10 = -3.0 and success (0 + 1 + 2) / 10;
+# window 1 (8 + 16 - 2 + 30) / 20 = 2.6 and (2 + 1 + 0 + 6) / 20; window 2 (7 + 9) / 4 = 4.0 and 2 / 4.
+# (A plain mean over iterations would give -4.67, 2.0 and 5.0 instead.)
+EXPECTED = [  # k, reward, success, val success, val step, wall_s, complete
+    (0, -3.0, 0.3, 0.25, 800, 80.0, True),
+    (1, 2.6, 0.45, math.nan, None, 180.0, True),
+    (2, 4.0, 0.5, 0.5, 2200, 220.0, False),
+]
+
+
+def write_progress(folder: Path, rows=PROGRESS) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "progress.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"iteration": 12, "env_')
+    return folder
+
+
+def write_log(path: Path, points: list[tuple[int, float]]) -> Path:
+    """A reference-format progress.csv (columns as the reference's train.py writes them)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["misc/nupdates", "misc/total_timesteps", "fps", "eprewmean", "loss/policy_entropy"])
+        for i, (t, v) in enumerate(points):
+            w.writerow([20 * (i + 1), t, 200, v, 1.4])
+    return path
+
+
+# Logged every 250 env steps: window 0 holds 250, 500, 750; window 1 holds 1000-1750; window 2
+# only 2000 and 2250, and the log ends there (2250 + 250 < 3000): not covered, left out.
+RAND = [(250, -9.0), (500, -6.0), (750, 0.0), (1000, 1.0), (1250, 2.0), (1500, 4.0), (1750, 9.0), (2000, 5.0),
+        (2250, 6.0)]
+NON_RAND = [(250, -3.0), (500, -2.0), (750, -1.5), (1000, 8.0)]  # window 0 only
+
+
+def test_run_windows_are_episode_weighted_with_latest_validation_and_wall_time():
+    windows = curve_mod.run_windows(PROGRESS, W)
+    assert [w.k for w in windows] == [0, 1, 2]
+    for w, (k, reward, success, val, val_step, wall, complete) in zip(windows, EXPECTED, strict=True):
+        assert w.k == k and w.complete is complete and w.val_step == val_step
+        assert w.reward == pytest.approx(reward, abs=1e-12) and w.success == pytest.approx(success, abs=1e-12)
+        assert (math.isnan(w.val_success) and math.isnan(val)) or w.val_success == val
+        assert w.wall_s == wall
+    assert [w.episodes for w in windows] == [10, 20, 4]
+
+
+def test_reference_logs_reduce_to_exact_window_means(tmp_path):
+    rand = curve_mod.reference_log_windows(write_log(tmp_path / "rand.csv", RAND), W)
+    assert rand == {0: pytest.approx(-5.0, abs=1e-12), 1: pytest.approx(4.0, abs=1e-12)}
+    out = tmp_path / "ref.csv"
+    rows = curve_mod.write_reference(tmp_path / "rand.csv", write_log(tmp_path / "non.csv", NON_RAND), out, W)
+    assert out.read_text() == ("env_steps,eprewmean_rand,eprewmean_non_rand\n"
+                               "500,-5.000000,-2.166667\n"
+                               "1500,4.000000,\n")
+    assert len(rows) == 2
+    ref = curve_mod.read_reference(out, W)
+    assert ref == {"eprewmean_rand": {0: -5.0, 1: 4.0}, "eprewmean_non_rand": {0: -2.166667}}
+    with pytest.raises(ValueError, match="centre"):
+        curve_mod.read_reference(out, 400)
+
+
+def test_committed_reference_csv_is_the_reduction_of_the_reference_logs():
+    """80 windows of 0.25 M env steps, both curves to 20 M (where the reference's logs end); its
+    first window recomputed from the reference's first 25 log lines (total_timesteps 10,080 to
+    240,480, every 20 updates of 16 x 30 steps), copied here from the two progress.csv files."""
+    with open(curve_mod.REFERENCE_CSV, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["env_steps"]) for r in rows] == [125_000 + 250_000 * k for k in range(80)]
+    values = {c: [float(r[c]) for r in rows] for c in curve_mod.REFERENCE_COLUMNS}
+    assert all(math.isfinite(v) for vs in values.values() for v in vs)
+    first_rand = [-19.34756513, -20.09821679, -17.57117294, -17.2405179, -16.97256182, -17.62280149, -17.35363328,
+                  -15.01342298, -17.11895, -16.23211242, -16.2399404, -15.01077666, -16.98431535, -16.89858911,
+                  -15.08061458, -17.51793628, -17.33022533, -17.31004936, -19.17175757, -16.84911331, -15.70596161,
+                  -16.1901056, -16.02629202, -16.91052895, -17.06131023]
+    first_non_rand = [-18.98487425, -16.86580585, -16.55486363, -17.06672025, -15.9982422, -16.44300883,
+                      -15.74378921, -15.09039705, -17.17453089, -13.85063568, -15.5046847, -16.09453213,
+                      -15.86032219, -14.67720427, -16.57059128, -14.19925753, -16.85316213, -15.94426089,
+                      -14.0578362, -13.9835012, -13.09644294, -14.19374541, -12.93764942, -12.69022262,
+                      -13.20982481]
+    assert values["eprewmean_rand"][0] == pytest.approx(math.fsum(first_rand) / 25, abs=5e-7)
+    assert values["eprewmean_non_rand"][0] == pytest.approx(math.fsum(first_non_rand) / 25, abs=5e-7)
+    # Both reference trainings learn: the last 2 M env steps average well above the first 2 M.
+    for vs in values.values():
+        assert sum(vs[-8:]) / 8 > sum(vs[:8]) / 8 + 20
+
+
+def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
+    out = tmp_path / "ref.csv"
+    curve_mod.write_reference(write_log(tmp_path / "r.csv", RAND), write_log(tmp_path / "n.csv", NON_RAND), out, W)
+    text = curve_mod.table(curve_mod.run_windows(PROGRESS, W), curve_mod.read_reference(out, W), W)
+    lines = text.splitlines()
+    assert lines[0] == "| " + " | ".join(curve_mod.HEADER) + " |" and len(lines) == 5
+    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 25 [800] | 0.02 |"
+    assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 |  | 0.05 |"
+    assert lines[4] == "| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 50 [2,200] | 0.06 |"
+
+
+def test_cli_writes_figure_and_table(tmp_path, capsys):
+    run = write_progress(tmp_path / "run")
+    ref, png, md = tmp_path / "ref.csv", tmp_path / "fig" / "curve.png", tmp_path / "table.md"
+    curve_mod.main([f"--run={run}", f"--reference={ref}", f"--output_png={png}", f"--output_md={md}", f"--window={W}",
+                    f"--reference_rand_log={write_log(tmp_path / 'r.csv', RAND)}",
+                    f"--reference_non_rand_log={write_log(tmp_path / 'n.csv', NON_RAND)}"])
+    printed = capsys.readouterr().out
+    table = md.read_text()
+    assert table.strip() in printed and table.count("\n") == 5 and "(so far)" in table
+    with Image.open(png) as im:
+        assert im.format == "PNG" and im.size[0] > 500 and im.size[1] > 400
+    # Without a figure, and the errors a user can make, as one-line messages.
+    curve_mod.main([f"--run={run}", f"--reference={ref}", "--output_png=null", f"--window={W}"])
+    with pytest.raises(SystemExit, match="progress.jsonl: no such file"):
+        curve_mod.main([f"--run={tmp_path}", f"--reference={ref}", "--output_png=null"])
+    with pytest.raises(SystemExit, match="go together"):
+        curve_mod.main([f"--reference_rand_log={tmp_path / 'r.csv'}"])
+    with pytest.raises(SystemExit, match="give --run"):
+        curve_mod.main([])
+
+
+def test_help_explains_every_option(capsys):
+    with pytest.raises(SystemExit) as e:
+        curve_mod.main(["--help"])
+    assert e.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for name in curve_mod.CurveConfig.__dataclass_fields__:
+        assert f"--{name}" in text
+    for phrase in ("progress.jsonl", "GST_predictor_rand/progress.csv", "Window width in env steps", "null to write none"):
+        assert phrase in text
