@@ -28,10 +28,11 @@ def latency_ms(path: str, ddim_steps: int, task: str, calls: int, threads: int) 
 
     import lerobot_crowdnav  # noqa: F401  (registers the envs)
     from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+    from lerobot_crowdnav.sim.config import SEED_SPLITS
 
     torch.set_num_threads(threads)
     env = gym.make(f"lerobot_crowdnav/{task}")
-    obs, _ = env.reset(seed=2_000_000_000)
+    obs, _ = env.reset(seed=SEED_SPLITS["test"][0])
     actor = LearnedPolicy(Path(path), "cpu", obs.shape[0], 0, True, ddim_steps)
     times = []
     fresh = True
@@ -58,6 +59,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads while timing one robot (default 1)")
     ap.add_argument("--output", type=Path, default=None, help="also write the rows as JSON here")
     args = ap.parse_args()
+    from lerobot_crowdnav.checkpoint_files import POLICY_CONFIG
     from lerobot_crowdnav.evaluation.eval import main as eval_main
 
     rows = []
@@ -72,7 +74,7 @@ def main() -> None:
     print(f"\n{args.task}, {args.episodes} test episodes, {args.policy}\n")
     print("| sampler | denoiser calls per action | SR (%) | human CR (%) | wall CR (%) | ITR (%) | select_action (ms, 1 robot) | eval wall time (s) |")
     print("|---|---|---|---|---|---|---|---|")
-    k = json.loads((Path(args.policy) / "config.json").read_text())["num_diffusion_steps"]
+    k = json.loads((Path(args.policy) / POLICY_CONFIG).read_text())["num_diffusion_steps"]
     for r in rows:
         calls = r["steps"] or k
         print(f"| {r['sampler']} | {calls} | {100 * r['sr']:.1f} | {100 * r['cr_human']:.1f} | {100 * r['cr_wall']:.1f} | "

@@ -57,10 +57,11 @@ def test_episode_bitwise_identical_whatever_batch_and_slot(preset, orca_robot):
 
 def test_seed_splits_are_disjoint_and_sized():
     ranges = {k: set(range(*v)) if v[1] - v[0] < 10_000 else None for k, v in SEED_SPLITS.items()}
-    assert len(ranges["val"]) == 1000 and len(ranges["test"]) == 500
-    assert not ranges["val"] & ranges["test"]
+    ranges["holdout"] = set(range(*SEED_SPLITS["holdout"]))
+    assert len(ranges["val"]) == 1000 and len(ranges["test"]) == 500 and len(ranges["holdout"]) == 10_000
+    assert not ranges["val"] & ranges["test"] and not (ranges["val"] | ranges["test"]) & ranges["holdout"]
     train_lo, train_hi = SEED_SPLITS["train"]
-    for split in ("val", "test"):
+    for split in ("val", "test", "holdout"):
         assert all(not train_lo <= s < train_hi for s in ranges[split])
     assert split_seeds("test", 3) == [SEED_SPLITS["test"][0] + i for i in range(3)]
     with pytest.raises(ValueError):

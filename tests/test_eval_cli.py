@@ -138,6 +138,9 @@ def test_val_split_takes_val_seeds(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         _eval(tmp_path / "val1001", "--eval.split=val", n_episodes=1001, policy="straight")
     assert "[1, 1000]" in str(exc.value.code)
+    # the holdout seeds (beyond 2^31) run through the same CLI
+    result = _eval(tmp_path / "holdout", "--eval.split=holdout", n_episodes=2, batch_size=2, policy="orca")
+    assert [e["seed"] for e in result["episodes"]] == split_seeds("holdout", 2) and result["n_episodes"] == 2
 
 
 def test_module_help_mentions_every_setting():

@@ -32,7 +32,8 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("data", ["lerobot_crowdnav.data"]),
     ("policy", ["lerobot_policy_pdpo", "lerobot_policy_crowdnavpp"]),
     ("rl", ["lerobot_crowdnav.rl"]),
-    ("evaluation CLIs and report", [f"{EV}.eval", f"{EV}.baselines", f"{EV}.figures", f"{EV}.report", f"{EV}.tables"]),
+    ("evaluation CLIs and report", [f"{EV}.eval", f"{EV}.baselines", f"{EV}.figures", f"{EV}.report", f"{EV}.tables",
+                                    f"{EV}.generalization"]),
     # The main job in parts (lerobot_crowdnav/main/), each above the ones it needs.
     ("main job: config, run folder, row type", [MAIN, f"{MAIN}.config", f"{MAIN}.paths", f"{MAIN}.rows"]),
     ("main job: stage runner", [f"{MAIN}.stages"]),
@@ -123,10 +124,14 @@ def test_the_check_fails_on_an_upward_import(module, source):
 
 def entry_points() -> set[str]:
     """What the product starts from: the console scripts, the modules with a ``__main__`` block
-    (``python -m``), the packages lerobot discovers, and the modules the scripts import."""
+    (``python -m``), the packages lerobot discovers, the modules the scripts import, and the policy
+    families' modules (``rl/families.get`` imports ``rl/<type>.py`` by its name)."""
+    from lerobot_crowdnav.rl import families
+
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     roots = {target.split(":")[0] for target in scripts.values()} | set(PACKAGES)
     roots |= {m for m, p in all_modules().items() if 'if __name__ == "__main__":' in p.read_text()}
+    roots |= {f"{families.PACKAGE}.{name}" for name in families.known()}
     known = set(all_modules())
     for script in [*(ROOT / "scripts").glob("*.py"), *(ROOT / "datasets_scripts").glob("*.py")]:
         roots |= {target for _, target in imported_modules("__script__", script.read_text(), False, known)}

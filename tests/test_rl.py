@@ -222,3 +222,51 @@ def test_an_agent_is_checked_against_the_protocol_and_the_ppo_settings():
     with pytest.raises(ValueError, match="n_critic_warmup_itr=2"):
         check_actor_critic(agent, PPOConfig())
     check_actor_critic(agent, PPOConfig(n_critic_warmup_itr=0))
+
+
+def test_a_family_module_is_found_by_its_name(tmp_path, monkeypatch):
+    """``families.get(T)`` imports the module ``<families.PACKAGE>.T`` (rl/T.py): a new family is that
+    one file. Here the package is a temporary one, so that nothing is written into the project."""
+    import sys
+
+    from lerobot_crowdnav.rl import families
+
+    assert "crowdnavpp" in families.known()  # rl/crowdnavpp.py, the built-in family
+    pkg = tmp_path / "family_pkg_test"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "tiny.py").write_text("from lerobot_crowdnav.rl.families import Family, register\n\n"
+                                 "register(Family('tiny', lambda source, sim_cfg, seed: None))\n")
+    (pkg / "helper.py").write_text("")  # a module that registers nothing
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(families, "PACKAGE", pkg.name)
+    monkeypatch.setattr(families, "_FAMILIES", {})
+    assert families.known() == ["tiny"]  # read from the sources, nothing imported yet
+    assert f"{pkg.name}.tiny" not in sys.modules
+    assert families.get("tiny").name == "tiny"
+    for name in ("helper", "nowhere", "../tiny", "tiny.x"):
+        with pytest.raises(ValueError, match=f"trains tiny \\(the family T is registered by the module {pkg.name}.T"):
+            families.get(name)
+
+
+class MiscountedParts(GaussianActorCritic):
+    """Declares one scored part, scores two."""
+
+    def forward(self, samples, memory, episode_start):
+        scores = super().forward(samples, memory, episode_start)
+        return scores._replace(logp=torch.cat([scores.logp, scores.logp], -1))
+
+
+def test_scores_of_another_shape_than_n_parts_are_refused_by_the_update():
+    """The clip and advantage weights have ``n_parts`` entries (checked where the agent is built);
+    the update checks the scores' last dimension against it before it uses them."""
+    agent = MiscountedParts(2, False)
+    cfg = PPOConfig(n_steps=4, batch_size=16, update_epochs=1, n_critic_warmup_itr=0)
+    check_actor_critic(agent, cfg)  # what it declares fits the settings
+    env = CueEnv(4, True)
+    collector = Collector(env, agent, None, torch.Generator().manual_seed(0))
+    collector.reset(seed=0)
+    ro = collector.collect(agent, cfg.n_steps)
+    optimizers = {name: torch.optim.Adam(params) for name, params in agent.param_groups().items()}
+    with pytest.raises(ValueError, match="scored a decision as 2 parts, not its n_parts=1"):
+        update(agent, agent, ro, cfg, optimizers, np.random.default_rng(0), Accelerator(cpu=True), train_actor=True)

@@ -33,12 +33,12 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import fault
+from ..checkpoint_files import POLICY_CONFIG
 from ..cli import run_cli
-from ..sim.config import DAGGER_SEED_BASE, SEED_SPLITS, CrowdSimConfig
+from ..sim.config import DAGGER_ROUND_SEEDS as ROUND_SEEDS, DAGGER_SEED_BASE, SEED_SPLITS, CrowdSimConfig
 from ..sim.engine import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
 from .dataset import COLLECTION_FILE, DemonstrationWriter
 
-ROUND_SEEDS = 1_000_000  # learner episodes of round r: train seeds from DAGGER_SEED_BASE + r * ROUND_SEEDS
 CARD_MARKER = "\n<!-- dagger rounds -->\n"
 
 
@@ -64,12 +64,13 @@ class DaggerConfig:
     seed: int = 0
 
     def validate(self) -> None:
-        if self.policy_path is None or not (Path(self.policy_path) / "config.json").exists():
+        if self.policy_path is None or not (Path(self.policy_path) / POLICY_CONFIG).exists():
             raise FileNotFoundError(f"--policy_path={self.policy_path}: no config.json (a pretrained_model directory)")
         if self.root is None or not (Path(self.root) / COLLECTION_FILE).exists():
             raise FileNotFoundError(f"--root={self.root}: not a collection made by collect_orca.py ({COLLECTION_FILE})")
-        if not 1 <= self.round < (SEED_SPLITS["train"][1] - DAGGER_SEED_BASE) // ROUND_SEEDS:
-            raise ValueError(f"--round must be >= 1 (and below 200), got {self.round}")
+        rounds = (SEED_SPLITS["train"][1] - DAGGER_SEED_BASE) // ROUND_SEEDS  # blocks left in the train split
+        if not 1 <= self.round < rounds:
+            raise ValueError(f"--round must be >= 1 (and below {rounds}), got {self.round}")
         for name in ("episodes", "every", "batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name} must be >= 1, got {getattr(self, name)}")
@@ -149,7 +150,7 @@ def dagger(cfg: DaggerConfig) -> dict:
         return next(r for r in rounds if r["round"] == cfg.round)
     sim_cfg = CrowdSimConfig(**collection["env"]).resolve()
     writer = DemonstrationWriter(root, collection["repo_id"], sim_cfg, collection, resume=True)
-    policy_cfg = json.loads((Path(cfg.policy_path) / "config.json").read_text())
+    policy_cfg = json.loads((Path(cfg.policy_path) / POLICY_CONFIG).read_text())
     horizon = cfg.horizon or policy_cfg.get("horizon", 1)
     first_seed = DAGGER_SEED_BASE + cfg.round * ROUND_SEEDS
     start = time.perf_counter()

@@ -24,7 +24,7 @@ from .. import fault
 from ..checkpoint_files import (BEST_INFO, CRITIC, FINETUNE_CONFIG, POLICY_CONFIG, SOURCE_PREFIX, TRAIN_CONFIG,
                                 TRAIN_PPO_CONFIG, WEIGHTS)
 from ..cli import run_cli
-from ..sim.config import CrowdSimConfig
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
 from .dataset import FPS
 
 REPO_IGNORE = ("images", "videos", "*.tmp")  # lerobot's push_to_hub skips images/ (no videos here)
@@ -142,7 +142,8 @@ def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: st
         lines += ["", "## Learning curve", "", f"![{algorithm} learning curve]({curve})"]
     if recipe:
         times = recipe.get("wall_time_s") or {}
-        lines += ["", "## Reproduce", "", f"From scratch ({made}):", "", "```bash", recipe["command"], "```", ""]
+        lines += ["", "## Reproduce", "", f"From scratch ({made}):", "", "```bash", portable(recipe["command"]), "```",
+                  ""]
         if times:
             lines += ["| stage | wall time (min) |", "|---|---|"]
             lines += [f"| {name} | {t / 60:.1f} |" for name, t in times.items()]
@@ -151,7 +152,14 @@ def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: st
     task = ((run or {}).get("env") or (metrics or {}).get("env") or {}).get("task", "BoundedCrowdNav-v0")
     return lines + ["", "## Use", "", "```bash",
                     f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task={task} "
-                    "--eval.n_episodes=50 --seed=2000000000", "```"]
+                    f"--eval.n_episodes=50 --seed={SEED_SPLITS['test'][0]}", "```"]
+
+
+def portable(command: str) -> str:
+    """``command`` without the flags that name a folder of the machine it ran on (an absolute
+    ``--output_root``): a card points at nothing outside its repository but public references."""
+    return " ".join(arg for arg in command.split(" ")
+                    if not (arg.startswith("--output_root=") and Path(arg.split("=", 1)[1]).is_absolute()))
 
 
 # Policy type (the "type" of its config.json) -> its model card writer, ``card(pretrained, repo_id,
@@ -222,7 +230,8 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
         + (f"critic {counts['critic'] / 1e6:.3f} M (paper: 0.201 M)." if counts["critic"]
            else "no critic (a BC policy: diffusion PPO adds one)."), "",
         "## Training", "",
-        f"- Data: `{dataset}`" + (f" ({train.get('dataset', {}).get('root')})" if train else "") + ".",
+        f"- Data: `{dataset}`" + (f" ({root})" if (root := (train.get("dataset") or {}).get("root"))
+                                  and not Path(root).is_absolute() else "") + ".",
         f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
         f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}.",
     ]

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..checkpoint_files import POLICY_CONFIG
 from ..layout import SENTINEL, check_sentinel
 from ..sim.config import split_seeds
 from ..sim.envs import CrowdNavVectorEnv
@@ -36,7 +37,7 @@ class LearnedPolicy:
         from lerobot.utils.import_utils import register_third_party_plugins
 
         path = Path(path)
-        if not (path / "config.json").exists():
+        if not (path / POLICY_CONFIG).exists():
             raise FileNotFoundError(f"--policy.path={path}: no config.json (expected a pretrained_model directory)")
         register_third_party_plugins()
         cfg = PreTrainedConfig.from_pretrained(path)

@@ -20,6 +20,7 @@ from pathlib import Path
 import draccus
 import numpy as np
 
+from ..checkpoint_files import PRETRAINED_MODEL
 from ..cli import machine_description, run_cli
 from ..sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
 from ..sim.envs import CrowdNavEnv, CrowdNavVectorEnv
@@ -74,7 +75,7 @@ class PretrainedPolicyConfig(RobotPolicyConfig):
     @property
     def name(self) -> str:
         path = Path(self.path or "?")
-        if path.name == "pretrained_model" and len(path.parents) >= 3:  # <run>/checkpoints/<step>/
+        if path.name == PRETRAINED_MODEL and len(path.parents) >= 3:  # <run>/checkpoints/<step>/
             return f"{path.parents[2].name}@{path.parent.name}"
         return path.name
 
@@ -83,7 +84,8 @@ class PretrainedPolicyConfig(RobotPolicyConfig):
 class EvalSettings:
     # Number of episodes: the first n seeds of the split.
     n_episodes: int = 500
-    # Seed split: test (500 seeds, every reported table), val (1,000, checkpoint and recipe selection), train.
+    # Seed split: test (500 seeds, every reported table), val (1,000, checkpoint and recipe selection),
+    # holdout (10,000 never used to choose or report: does a result hold on fresh episodes?), train.
     split: str = "test"
     # Environments stepped together in one batch (at most n_episodes).
     batch_size: int = 256

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from ..sim.engine import EVENT_NAMES
+from ..sim.engine import EVENT_NAMES, HUMAN_COLLISION, SUCCESS, TIMEOUT, WALL_COLLISION
 
 
 @dataclass
@@ -52,7 +52,9 @@ class EpisodeRecord:
         return asdict(self)
 
 
-OUTCOMES = ("success", "human_collision", "wall_at_start", "wall_goal_in_zone", "wall_other", "timeout")
+# The episode events (sim/engine.EVENT_NAMES), wall collisions split by cause.
+OUTCOMES = (EVENT_NAMES[SUCCESS], EVENT_NAMES[HUMAN_COLLISION], "wall_at_start", "wall_goal_in_zone", "wall_other",
+            EVENT_NAMES[TIMEOUT])
 
 
 def outcome(record: dict, arena_size: float, robot_radius: float) -> str | None:
@@ -67,7 +69,7 @@ def outcome(record: dict, arena_size: float, robot_radius: float) -> str | None:
 
     None for a later wall collision in a record without its goal (written before goals were kept)."""
     event = record["event"]
-    if event != "wall_collision":
+    if event != EVENT_NAMES[WALL_COLLISION]:
         return event
     if record["steps"] == 1:
         return "wall_at_start"
@@ -105,15 +107,16 @@ def compute_metrics(records: list[EpisodeRecord], dt: float) -> dict[str, float]
     if not records:
         raise ValueError("no episodes to aggregate")
     n = len(records)
-    success = [r for r in records if r.event == "success"]
-    count = {name: sum(r.event == name for r in records) for name in EVENT_NAMES[1:]}
+    success = [r for r in records if r.event == EVENT_NAMES[SUCCESS]]
+    count = {code: sum(r.event == EVENT_NAMES[code] for r in records)
+             for code in (SUCCESS, HUMAN_COLLISION, WALL_COLLISION, TIMEOUT)}
     intrusion_steps = sum(r.intrusion_steps for r in records)
     return {
-        "sr": count["success"] / n,
-        "cr": (count["human_collision"] + count["wall_collision"]) / n,
-        "cr_human": count["human_collision"] / n,
-        "cr_wall": count["wall_collision"] / n,
-        "tr": count["timeout"] / n,
+        "sr": count[SUCCESS] / n,
+        "cr": (count[HUMAN_COLLISION] + count[WALL_COLLISION]) / n,
+        "cr_human": count[HUMAN_COLLISION] / n,
+        "cr_wall": count[WALL_COLLISION] / n,
+        "tr": count[TIMEOUT] / n,
         "nt": _mean(r.steps * dt for r in success),
         "pl": _mean(r.path_length for r in records),
         "itr": _mean(r.intrusion_steps / r.steps for r in records),

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from .. import fault
-from ..checkpoint_files import BEST_INFO
+from ..checkpoint_files import BEST_INFO, PRETRAINED_MODEL, TRAINING_STATE
 
 # Settings that must not change when a run is resumed.
 RESUME_KEYS = ("env", "num_envs", "ppo", "seed", "env_seed")
@@ -63,11 +63,11 @@ class Checkpoints:
         one process's own state."""
         name = f"{env_steps:0{self.width}d}"
         staging = self.root / f".{name}.tmp"
-        state = staging / "training_state"
+        state = staging / TRAINING_STATE
         if self.acc.is_main_process:
             shutil.rmtree(staging, ignore_errors=True)
             state.mkdir(parents=True)
-            save_policy(staging / "pretrained_model")
+            save_policy(staging / PRETRAINED_MODEL)
             fault.point("finetune.checkpoint_writing")
             torch.save(shared, state / "optimizers.pt")
         self.acc.wait_for_everyone()
@@ -89,9 +89,9 @@ class Checkpoints:
         """Main process only: ``best/pretrained_model`` and ``best/best.json`` (``info``)."""
         staging = self.root / ".best.tmp"
         shutil.rmtree(staging, ignore_errors=True)
-        save_policy(staging / "pretrained_model")
+        save_policy(staging / PRETRAINED_MODEL)
         (staging / BEST_INFO).write_text(json.dumps(info, indent=2))
         fault.replace_dir(staging, self.root / "best")
 
     def load_shared(self) -> dict:
-        return torch.load(self.last / "training_state" / "optimizers.pt", map_location=self.acc.device, weights_only=True)
+        return torch.load(self.last / TRAINING_STATE / "optimizers.pt", map_location=self.acc.device, weights_only=True)

@@ -1,11 +1,15 @@
 """The policy families that ``lerobot-crowdnav-train-ppo`` trains: a family is a lerobot policy
 type with its actor-critic (rl/agent.py) and its PPO recipe. A new family is one module that calls
-``register`` when imported (and ``data.hub.register_model_card`` for its hub model card); the
-built-in one (``crowdnavpp``) registers on the first lookup.
+``register`` when imported (and ``data.hub.register_model_card`` for its hub model card). The
+family ``T`` in this package is the module ``rl/T.py``, imported by the first lookup of ``T``
+(``crowdnavpp``: rl/crowdnavpp.py), so adding that file is all it takes; a module elsewhere (the
+Gaussian MLP of tests/test_rl.py) registers its family when it is imported.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,10 +41,26 @@ def register(family: Family) -> Family:
     return family
 
 
-def get(name: str) -> Family:
-    from . import crowdnavpp  # noqa: F401  (registers the built-in family)
+PACKAGE = __package__  # where the module of family T is T.py
+REGISTERS = "register(Family("  # what the source of a family module holds
 
+
+def get(name: str) -> Family:
+    """The family ``name``: registered already, else registered by importing its module
+    ``<PACKAGE>.<name>``; a clear error when there is none."""
+    module = f"{PACKAGE}.{name}"
+    if name not in _FAMILIES and name.isidentifier() and importlib.util.find_spec(module) is not None:
+        importlib.import_module(module)
     if name not in _FAMILIES:
-        raise ValueError(f"--policy.type={name!r}: PPO from scratch trains {', '.join(sorted(_FAMILIES))} "
-                         "(a pretrained PDPO policy is fine-tuned by lerobot-crowdnav-finetune)")
+        raise ValueError(f"--policy.type={name!r}: PPO from scratch trains {', '.join(known())} (the family T is "
+                         f"registered by the module {PACKAGE}.T; a pretrained PDPO policy is fine-tuned by "
+                         "lerobot-crowdnav-finetune)")
     return _FAMILIES[name]
+
+
+def known() -> list[str]:
+    """The families registered so far and those whose module in ``PACKAGE`` would register one."""
+    spec = importlib.util.find_spec(PACKAGE)
+    modules = {path.stem for folder in spec.submodule_search_locations for path in Path(folder).glob("*.py")
+               if path.resolve() != Path(__file__).resolve() and REGISTERS in path.read_text()}
+    return sorted(set(_FAMILIES) | modules)

@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from .. import fault
-from ..checkpoint_files import SOURCE_PREFIX, TRAIN_CONFIG
+from ..checkpoint_files import PRETRAINED_MODEL, SOURCE_PREFIX, TRAIN_CONFIG, TRAINING_STATE
 from ..cli import deferred_interrupt
 from ..sim.config import PPO_ENV_SEED, PPO_PROCESS_SEEDS, SEED_SPLITS, CrowdSimConfig
 from ..sim.envs import CrowdNavVectorEnv
@@ -139,11 +139,11 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
     # --resume=true before the first checkpoint (killed early): start over.
     resumed = cfg.resume and ckpts.last.exists()
     if resumed:
-        saved = json.loads((ckpts.last / "pretrained_model" / config_name).read_text())
+        saved = json.loads((ckpts.last / PRETRAINED_MODEL / config_name).read_text())
         if changed := resume_conflicts(saved, settings, world, defaults=json.loads(json.dumps(
                 draccus.encode(type(cfg)()), default=str))):
             raise ValueError(f"--resume=true with different settings than the saved run: {', '.join(changed)}")
-        source = ckpts.last / "pretrained_model"
+        source = ckpts.last / PRETRAINED_MODEL
     else:
         if not cfg.resume and out.exists() and any(out.iterdir()):
             raise FileExistsError(f"{out} exists; pass --resume=true to continue its run or choose another --output_dir")
@@ -190,7 +190,7 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
         for name, opt in optimizers.items():
             opt.load_state_dict(shared[f"{name}_opt"])
         progress.update({k: shared.get(k, progress[k]) for k in progress})
-        state = ckpts.last / "training_state"
+        state = ckpts.last / TRAINING_STATE
         with np.load(state / f"env_rank{rank}.npz") as env_state:
             env.load_state_dict(dict(env_state))
         saved_rng = json.loads((state / f"rng_rank{rank}.json").read_text())

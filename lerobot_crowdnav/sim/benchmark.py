@@ -20,11 +20,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
 import gymnasium as gym
 import numpy as np
 
-from ..cli import machine_description
+from ..cli import machine_description, run_cli
 from .config import CROWDS, CrowdSimConfig
 from .envs import CrowdNavVectorEnv
 
@@ -126,11 +125,7 @@ def run(cfg: BenchmarkConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=BenchmarkConfig, args=argv)
-    try:
-        run(cfg)
-    except ValueError as e:
-        raise SystemExit(f"error: {e}") from None
+    run_cli(BenchmarkConfig, run, argv)
 
 
 if __name__ == "__main__":

@@ -321,12 +321,15 @@ SEED_SPLITS: dict[str, tuple[int, int]] = {
     "train": (0, 1_000_000_000),  # [0, 1e9): demonstrations (from 0) and the learners' blocks below
     "val": (1_000_000_000, 1_000_001_000),  # checkpoint and recipe selection (up to 1,000 episodes)
     "test": (2_000_000_000, 2_000_000_500),  # 500 episodes: every reported table
+    # Never used to choose or report: whether a target met on the test seeds holds on fresh episodes.
+    "holdout": (3_000_000_000, 3_000_010_000),
 }
 # The learners' blocks of train seeds, apart from the demonstrations' (ORCA, from seed 0):
 PPO_ENV_SEED = 500_000_000  # PPO rollouts: process r of a run from PPO_ENV_SEED + r * PPO_PROCESS_SEEDS
 PPO_PROCESS_SEEDS = 10_000_000
 PPO_STAGE2_ENV_SEED = 520_000_000  # the main job's second fine-tuning stage (after 2 processes' blocks)
-DAGGER_SEED_BASE = 800_000_000  # DAgger learner episodes of round r: from DAGGER_SEED_BASE + r * 1,000,000
+DAGGER_SEED_BASE = 800_000_000  # DAgger learner episodes of round r: from DAGGER_SEED_BASE + r * DAGGER_ROUND_SEEDS
+DAGGER_ROUND_SEEDS = 1_000_000
 
 
 def split_seeds(split: str, n: int | None = None, offset: int = 0) -> list[int]:
