@@ -10,9 +10,10 @@ with ``--models=null``, training from scratch (collect ORCA demonstrations -> pr
 the stock ``lerobot-train``, H = 5 and H = 1 for the "w/o action chunk" ablation, with DAgger
 rounds if asked -> fine-tune each with diffusion PPO, one or two stages -> with
 ``--crowdnavpp_env_steps``, CrowdNav++ by PPO). Then ORCA, straight and those policies on the same
-test seeds, the trained policies and datasets pushed to a hub-format directory, figures, and
-``outputs/<run>/report.md`` with the tables (also as CSV) and, next to every number, the
-command, config and seed that produced it.
+test seeds, the trained policies and datasets pushed to a hub-format directory, figures, the same
+rows under the crowds of ``--crowds`` they were not trained in (reactive ORCA humans, social-force
+humans, both: the generalization table), and ``outputs/<run>/report.md`` with the tables (also as
+CSV) and, next to every number, the command, config and seed that produced it.
 
 Every stage runs the command a user would type and is skipped when its output is complete; an
 interrupted stage resumes (collection, lerobot-train and fine-tuning from their last checkpoint).
@@ -67,7 +68,8 @@ class Pipeline:
             curves, draw_curves = self.source.curves(task)
             figures, curves = self.evaluator.figures(task, self.source.figure_policy(task), curves, draw_curves,
                                                      self.source.redraw)
-            tasks.append(self.evaluator.task_results(task, methods, figures, curves, self.source.missing(task)))
+            crowds = self.evaluator.evaluate_crowds(task, rows)  # the generalization table (--crowds)
+            tasks.append(self.evaluator.task_results(task, methods, figures, curves, self.source.missing(task), crowds))
         report = self.evaluator.report(tasks, self.source.budget(), self.source.models, time.perf_counter() - start)
         print(f"[main] report: {report}")
         return report

@@ -302,8 +302,13 @@ def test_generalization_table_runs_every_policy_under_every_crowd_and_resumes(tm
     assert not (tmp_path / "baselines.md").exists()  # the baseline tables are left alone
     rows = ["ORCA look-ahead", "ORCA current-state", "straight", "PDPO (H = 5, fine-tuned)",
             "PDPO w/o action chunk (H = 1, fine-tuned)"]
-    for row in rows:
-        assert f"| {row} | trained (ORCA) | " in text and f"| {row} | reactive social force | " in text
+    from lerobot_crowdnav.evaluation.generalization import generalization_markdown, read_csv
+
+    table = read_csv((tmp_path / "generalization_original.csv").read_text())  # the main job's report table
+    assert sorted((r["method"], r["crowd"]) for r in table) == sorted((row, c) for row in rows
+                                                                      for c in ("orca", "reactive_social_force"))
+    assert generalization_markdown(table, False, "policy") in text
+    assert "| policy | trained (ORCA): SR (%) [95 % CI] | trained (ORCA): human CR / TR (%) | " in text
     metrics = sorted((tmp_path / "generalization").rglob("metrics.json"))
     assert len(metrics) == 2 * len(rows)
     for path in metrics:

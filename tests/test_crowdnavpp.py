@@ -172,6 +172,51 @@ def test_forward_refuses_supervised_training(policy):
         policy.forward({"observation.state": torch.zeros(1, D)})
 
 
+def test_saves_gru_weights_packed_into_one_buffer(policy, tmp_path: Path):
+    """On a GPU cuDNN makes the GRU's weights views of one flat buffer (flatten_parameters);
+    safetensors refuses such a tensor, so reproduce the packing on the CPU and save."""
+    gru = policy.net.node_rnn.gru
+    weights = list(gru.parameters())
+    flat = torch.cat([w.detach().flatten() for w in weights])
+    offset = 0
+    for w in weights:
+        w.data = flat[offset:offset + w.numel()].view_as(w)
+        offset += w.numel()
+    assert weights[0].untyped_storage().nbytes() > weights[0].numel() * weights[0].element_size()
+    policy.save_pretrained(tmp_path)
+    loaded = type(policy).from_pretrained(tmp_path)
+    for (k, a), b in zip(policy.state_dict().items(), loaded.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+
+
+def test_gru_runs_without_cudnn_when_trained_in_eval_mode(monkeypatch):
+    """PPO backpropagates through the GRU in eval mode, which cuDNN refuses ("cudnn RNN backward
+    can only be called in training mode"): there the GRU must run with cuDNN off, and only there."""
+    torch.manual_seed(0)
+    net = CrowdNavPPPolicy(make_config()).net
+    seen = []
+    gru_forward = type(net.node_rnn.gru).forward
+    monkeypatch.setattr(type(net.node_rnn.gru), "forward",
+                        lambda self, *a: (seen.append(torch.backends.cudnn.enabled), gru_forward(self, *a))[1])
+    obs, memory, starts = random_obs(2, [3, 0])[None], net.initial_memory(2), torch.zeros(1, 2, dtype=torch.bool)
+    net.eval()
+    net.unroll(obs, memory, starts)[1].sum().backward()  # PPO's update
+    with torch.no_grad():
+        net.unroll(obs, memory, starts)  # a rollout
+    net.train()
+    net.unroll(obs, memory, starts)
+    assert seen == [False, True, True] and torch.backends.cudnn.enabled
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_ppo_backward_through_the_gru_on_a_gpu():
+    torch.manual_seed(0)
+    net = CrowdNavPPPolicy(make_config()).net.cuda().eval()
+    obs = random_obs(2, [3, 0])[None].cuda()
+    net.unroll(obs, net.initial_memory(2).cuda(), torch.zeros(1, 2, dtype=torch.bool, device="cuda"))[1].sum().backward()
+    assert all(p.grad is not None for p in net.node_rnn.gru.parameters())
+
+
 def test_save_load_round_trip_through_lerobot_plugin_discovery(policy, tmp_path: Path):
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors

@@ -5,12 +5,14 @@ from __future__ import annotations
 import csv
 import io
 import json
+import re
 import shutil
 from pathlib import Path
 
 import draccus
 import pytest
 
+from lerobot_crowdnav.data.hub import portable
 from lerobot_crowdnav.evaluation.report import Row, boundary_audit, csv_table, markdown_table, parameter_table, wall_audit
 from lerobot_crowdnav.main.config import MainConfig
 from lerobot_crowdnav.main.training import Training
@@ -88,6 +90,37 @@ def test_wall_audit_splits_wall_collisions_by_cause():
     assert "and 25.0 % have their goal inside the wall zone" in facts
 
 
+def test_generalization_table_from_hand_made_metrics():
+    """A row per policy; per crowd SR with its Wilson interval over the pooled seeds, its change
+    from the first crowd (points) and human / wall CR / TR; the CSV keeps a line per (policy, crowd)."""
+    from lerobot_crowdnav.evaluation.generalization import check_crowds, generalization_csv, generalization_markdown, read_csv
+
+    def m(sr, n=500, human=0.1, wall=0.05):
+        return {"sr": sr, "n_episodes": n, "cr_human": human, "cr_wall": wall, "tr": 1 - sr - human - wall, "nt": None,
+                "itr": 0.02}
+
+    results = {"ORCA": {"orca": [m(0.49)], "reactive_orca": [m(0.6, wall=0.2)]},
+               "PDPO": {"orca": [m(0.5, 100), m(0.7, 300)], "reactive_orca": [m(0.4, 100), m(0.6, 300)]}}
+    text = generalization_csv(results, ["orca", "reactive_orca"])
+    rows = read_csv(text)
+    assert [(r["method"], r["crowd"], r["n_seeds"], r["n_episodes"]) for r in rows] == [
+        ("ORCA", "orca", "1", "500"), ("ORCA", "reactive_orca", "1", "500"), ("PDPO", "orca", "2", "400"),
+        ("PDPO", "reactive_orca", "2", "400")]
+    assert rows[0]["NT_mean"] == "" and float(rows[1]["SR_change"]) == pytest.approx(11.0)
+    md = generalization_markdown(rows, bounded=True).splitlines()
+    assert md[0] == ("| Method | trained (ORCA): SR (%) [95 % CI] | trained (ORCA): human CR / wall CR / TR (%) | "
+                     "reactive ORCA: SR (%) [95 % CI] | reactive ORCA: SR change | reactive ORCA: human CR / wall CR / TR (%) |")
+    assert md[2] == "| ORCA | 49.0 [44.6, 53.4] | 10.0 / 5.0 / 36.0 | 60.0 [55.6, 64.2] | +11.0 | 10.0 / 20.0 / 10.0 |"
+    # two seeds: mean ± population std, the interval over both seeds' episodes (50 + 210 of 400)
+    assert md[3] == "| PDPO | 60.0 ± 10.0 [60.2, 69.5] | 10.0 / 5.0 / 25.0 | 50.0 ± 10.0 [50.1, 59.8] | -10.0 | 10.0 / 5.0 / 35.0 |"
+    assert generalization_markdown(rows, bounded=False).splitlines()[2] == \
+        "| ORCA | 49.0 [44.6, 53.4] | 10.0 / 36.0 | 60.0 [55.6, 64.2] | +11.0 | 10.0 / 10.0 |"
+    check_crowds([], allow_empty=True)
+    for bad in (["orca", "calm"], ["orca", "orca"], []):
+        with pytest.raises(ValueError, match="--crowds must list distinct crowds among orca, reactive_orca"):
+            check_crowds(bad)
+
+
 @pytest.fixture(scope="module")
 def tiny_main(tmp_path_factory) -> Path:
     """The output_root of an uninterrupted tiny main job."""
@@ -118,7 +151,9 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         model = root / "hub" / "models" / "local" / f"pdpo_{task}_h5"
         assert (model / "model.safetensors").exists() and (model / "learning_curve.png").stat().st_size > 5_000
         card = (model / "README.md").read_text()
-        assert "![diffusion-PPO learning curve](learning_curve.png)" in card and " ".join(["lerobot-crowdnav-main", *argv]) in card
+        assert "![diffusion-PPO learning curve](learning_curve.png)" in card
+        # the reproduce line is the command typed, less the folder of this machine it wrote to
+        assert portable(" ".join(["lerobot-crowdnav-main", *argv])) in card and f"--output_root={tiny_main}" not in card
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
         assert f"| finetune2 {task} H=5 seed=1000 | " in card and "- It continued a fine-tuned checkpoint: " in card
         assert "- Checkpoint: the run's `best`, at " in card
@@ -244,3 +279,98 @@ def test_main_and_recipe_configs_parse_and_their_flags_do_too(path):
     assert all(f.startswith("--policy.") for f in cfg.bc_args), "bc_args: only policy flags are recipe settings"
     draccus.parse(PDPOConfig, args=[f"--{f.removeprefix('--policy.')}" for f in cfg.bc_args])
     draccus.parse(FinetuneConfig, args=[*cfg.ft_args, *cfg.ft2_args]).ppo.validate()
+
+
+# -- the generalization table (--crowds) ---------------------------------------------------------
+def _stage_rows(report: str) -> dict[str, str]:
+    """The report's Stages table: stage name -> its wall-time cell."""
+    table = report.split("## Stages\n", 1)[1].split("\n## ", 1)[0]
+    return {cells[1].strip(): cells[3].strip() for line in table.splitlines()[3:] if (cells := line.split("|"))[1:]}
+
+
+def _without_generalization(report: str) -> str:
+    """The report less its first line's wall time, the generalization tables and their stages."""
+    lines = [line for line in report.splitlines()
+             if not line.startswith("Machine: ") and not (line.startswith("| eval ") and " crowd=" in line)]
+    return re.sub(r"### Generalization: crowds it was not trained in\n.*?\n(?=## )", "", "\n".join(lines), flags=re.S)
+
+
+def test_main_job_generalization_table_resumes_and_crowds_off_is_the_report_before(tiny_main):
+    """tiny.yaml's --crowds=[orca,reactive_social_force]: every row of each results table again
+    under the other crowd, in its own stage and directory (the trained crowd's are unchanged);
+    the report's table is its CSV's; a rerun evaluates nothing again; --crowds=[] gives the
+    report without the tables (nor their CSVs), the rest as it was; a bad crowd is one error line."""
+    from lerobot_crowdnav.evaluation.generalization import generalization_markdown, read_csv
+
+    argv = fi.main_argv(tiny_main)
+    root = tiny_main / "tiny"
+    pipeline_main(argv)  # complete whatever the tests before left
+    report = (root / "report.md").read_text()
+    assert report.count("### Generalization: crowds it was not trained in") == 2
+    names = ["orca", "straight", "pdpo_bc_h5_s1000", "pdpo_ft_h1_s1000", "pdpo_ft_h5_s1000", "crowdnavpp_s1000"]
+    for short, bounded in (("bounded", True), ("original", False)):
+        results = {r["method"]: r for r in csv.DictReader(io.StringIO((root / "tables" / f"results_{short}.csv").read_text()))}
+        rows = read_csv((root / "tables" / f"generalization_{short}.csv").read_text())
+        assert [(r["method"], r["crowd"]) for r in rows] == [(m, c) for m in results for c in ("orca", "reactive_social_force")]
+        assert f"\n{generalization_markdown(rows, bounded)}\n" in report
+        for r in rows:
+            if r["crowd"] == "orca":  # the trained crowd: the results table's own row
+                assert (r["SR_mean"], r["SR95_low"], r["SR_change"]) == (results[r["method"]]["SR_mean"],
+                                                                        results[r["method"]]["SR95_low"], "")
+            else:
+                assert r["SR_change"] != "" and r["n_episodes"] == "4"
+        for name in names:
+            env = json.loads((root / "eval" / short / f"{name}_reactive_social_force" / "metrics.json").read_text())["env"]
+            assert (env["robot_visible"], env["human_policy"]) == (True, "social_force")
+            env = json.loads((root / "eval" / short / name / "metrics.json").read_text())["env"]
+            assert (env["robot_visible"], env["human_policy"]) == (False, "orca")
+    stages = _stage_rows(report)
+    crowd_stages = [name for name in stages if name.endswith(" crowd=reactive_social_force")]
+    assert len(crowd_stages) == 2 * len(names) and all(stages[name] == "skipped (complete)" for name in crowd_stages)
+    commands = json.loads((root / "commands.json").read_text())
+    assert commands["eval bounded orca crowd=reactive_social_force"][4:6] == ["--env.robot_visible=true",
+                                                                            "--env.human_policy=social_force"]
+    assert commands["eval bounded orca"] == [  # the trained crowd's stage as it was
+        "lerobot-crowdnav-eval", "--policy.type=orca", "--env.task=BoundedCrowdNav-v0", "--env.preset=paper",
+        "--eval.n_episodes=4", "--eval.split=test", "--eval.batch_size=4", "--eval.n_videos=1",
+        f"--output_dir={root / 'eval' / 'bounded' / 'orca'}", "--overwrite=true"]
+    tables = {p.name: p.read_text() for p in (root / "tables").iterdir()}
+
+    pipeline_main([*argv, "--crowds=[]"])
+    before = (root / "report.md").read_text()
+    assert "Generalization" not in before and " crowd=" not in before
+    assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == {
+        name: text for name, text in tables.items() if not name.startswith("generalization_")}
+    assert _without_generalization(report) == _without_generalization(before)
+    pipeline_main(argv)  # and back: nothing evaluated again, the same tables
+    assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
+    assert all(time == "skipped (complete)" for name, time in _stage_rows((root / "report.md").read_text()).items()
+               if name.startswith("eval "))
+    with pytest.raises(SystemExit) as error:
+        pipeline_main([*argv, "--crowds=[orca,calm]"])
+    message = str(error.value)
+    assert "\n" not in message and "--crowds" in message and "calm" in message and "reactive_orca" in message
+
+
+def test_shipped_models_under_other_crowds_rerun_only_when_the_model_changes(tiny_main, tmp_path):
+    """With shipped models the trained crowd's evaluation always runs (as before); another crowd's
+    runs again only when the model directory's files changed (copies keep their mtime: a digest)."""
+    shipped = tmp_path / "models"
+    shutil.copytree(tiny_main / "tiny" / "hub" / "models" / "local", shipped)
+    argv = [f"--models={shipped}", f"--output_root={tmp_path / 'out'}", "--run=shipped", "--test_episodes=2",
+            "--figure_steps=[0]", "--figure_samples=2", "--tasks=[CrowdNav-v0]", "--crowds=[orca,social_force]"]
+    pipeline_main(argv)
+    root = tmp_path / "out" / "shipped"
+    digest = root / "eval" / "original" / "pdpo_original_h5_social_force" / "policy.sha256"
+    first = digest.read_text()
+    pipeline_main(argv)
+    stages = _stage_rows((root / "report.md").read_text())
+    assert stages["eval original pdpo_original_h5"] != "skipped (complete)"
+    assert stages["eval original pdpo_original_h5 crowd=social_force"] == "skipped (complete)"
+    shutil.rmtree(shipped / "pdpo_original_h5")
+    shutil.copytree(shipped / "pdpo_bounded_h5", shipped / "pdpo_original_h5")  # another H = 5 policy, same mtimes
+    pipeline_main(argv)
+    stages = _stage_rows((root / "report.md").read_text())
+    assert stages["eval original pdpo_original_h5 crowd=social_force"] != "skipped (complete)"
+    assert stages["eval original orca crowd=social_force"] == "skipped (complete)"
+    assert digest.read_text() != first

@@ -144,3 +144,44 @@ def test_bad_markers_and_missing_rows_are_errors(tmp_path):
     (tmp_path / "main" / "wall_audit.csv").write_text("method,episodes\nstraight,500\n")
     with pytest.raises(ValueError, match="no row 'ORCA"):
         regenerate("<!-- table:wall-audit -->\n<!-- /table -->\n", tmp_path)
+
+
+def test_generalization_tables_come_from_the_report_csv_and_wait_for_it(tmp_path, capsys):
+    """The generalization blocks: until docs/data/main/generalization_<task>.csv exists, a
+    placeholder naming the command that makes it (and the command says it skipped them); then
+    exactly the report's table (same function on the same CSV lines), for any crowds."""
+    from lerobot_crowdnav.evaluation.generalization import generalization_csv, generalization_markdown, read_csv
+    from lerobot_crowdnav.evaluation.tables import GENERALIZATION_TABLES, NOT_GENERATED
+
+    root = tmp_path / "repo"
+    for doc in DOCS:
+        (root / doc).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ROOT / doc, root / doc)
+    shutil.copytree(DATA, root / "docs" / "data")
+    for name in GENERALIZATION_TABLES:
+        (root / "docs" / "data" / "main" / name).unlink(missing_ok=True)
+    assert tables(TablesConfig(root=root)) == []  # the committed docs: the placeholders
+    assert "skipped table generalization-bounded: docs/data/main/generalization_bounded.csv not generated yet" \
+        in capsys.readouterr().out
+    got = blocks((root / "docs" / "results.md").read_text())
+    assert got["generalization-original"] == NOT_GENERATED.format(file="main/generalization_original.csv")
+
+    run = tmp_path / "main"
+    shutil.copytree(DATA / "main", run / "tables")
+    crowds = ["orca", "reactive_orca", "social_force", "reactive_social_force"]
+    expected = {}
+    for short, bounded in (("bounded", True), ("original", False)):
+        results = {label: {c: [metrics(0.2 + 0.1 * j + 0.05 * k, 50, bounded=bounded, seed=j + k + s) for s in range(1 + (j == 1))]
+                           for k, c in enumerate(crowds)} for j, label in enumerate(["ORCA (look-ahead)", "PDPO (H = 5, fine-tuned)"])}
+        text = generalization_csv(results, crowds)
+        (run / "tables" / f"generalization_{short}.csv").write_text(text)
+        expected[short] = generalization_markdown(read_csv(text), bounded)
+    tables(TablesConfig(main=run, root=root))
+    got = blocks((root / "docs" / "results.md").read_text())
+    for short in ("bounded", "original"):
+        assert (root / "docs" / "data" / "main" / f"generalization_{short}.csv").read_bytes() == \
+            (run / "tables" / f"generalization_{short}.csv").read_bytes()
+        assert got[f"generalization-{short}"] == expected[short]
+    assert "| PDPO (H = 5, fine-tuned) | 30.0 ± " in expected["bounded"]  # two seeds: mean ± std, then the interval
+    assert " / " in got["generalization-bounded"].splitlines()[2]
+    assert tables(TablesConfig(root=root)) == []

@@ -15,9 +15,11 @@ rows whose metrics exist for the same episode count, so an interrupted run resum
 straight baselines and every trained model found in ``--models`` (the shipped ones by default),
 on each benchmark, under the four crowd settings of ``sim.config.CROWDS`` (the crowd the policies
 were trained in; reactive ORCA humans; social-force humans; both), with the outcome split
-(success, human and wall collisions, timeouts). One ``metrics.json`` per row under
+(success, human and wall collisions, timeouts): the table of ``evaluation/generalization.py``,
+the same as in the main job's report. One ``metrics.json`` per row under
 ``<output_dir>/generalization/<task>/<crowd>/<row>/``; the tables go to
-``<output_dir>/generalization.md`` (and into ``baselines.md`` when run with the other tables).
+``<output_dir>/generalization.md`` (and into ``baselines.md`` when run with the other tables),
+each also as ``<output_dir>/generalization_<task>.csv``.
 """
 
 from __future__ import annotations
@@ -26,12 +28,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import math
-
 from ..cli import run_cli
 from ..sim.config import CROWDS, TASKS, CrowdSimConfig
 from .eval import (EvalConfig, EvalSettings, OrcaPolicyConfig, PretrainedPolicyConfig, RobotPolicyConfig,
                    StraightPolicyConfig, evaluate)
+from .generalization import (CROWD_LABELS, check_crowds, crowd_env, crowds_sentence, generalization_csv,
+                             generalization_markdown, read_csv)
 from .metrics import markdown_header, markdown_row
 from .report import Row, wall_audit
 
@@ -75,8 +77,6 @@ SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
 MODEL_ROWS = {"pdpo_{short}_h1": "PDPO w/o action chunk (H = 1, fine-tuned)",
               "pdpo_{short}_h5": "PDPO (H = 5, fine-tuned)", "crowdnavpp_{short}": "CrowdNav++ (Const. Vel.)"}
 GENERALIZATION_BASELINES = {"ORCA look-ahead": LA, "ORCA current-state": CS, "straight": None}
-CROWD_LABELS = {"orca": "trained (ORCA)", "reactive_orca": "reactive ORCA", "social_force": "social force",
-                "reactive_social_force": "reactive social force"}
 
 
 @dataclass
@@ -141,15 +141,10 @@ def trained_models(models: Path | None, task: str) -> dict[str, Path]:
     return found
 
 
-def _num(value: float | None, scale: float = 100.0, digits: int = 1) -> str:
-    """A metric as a table cell (rates in % by default); ``n/a`` for a missing or NaN value (NT
-    with no success, saved as null)."""
-    return "n/a" if value is None or math.isnan(value) else f"{scale * value:.{digits}f}"
-
-
 def generalization(cfg: BaselinesConfig, machines: set[str]) -> str:
-    """The crowd-generalization tables (markdown): per benchmark, a summary of SR by crowd and the
-    outcome split of every (policy, crowd) row."""
+    """The crowd-generalization tables (markdown; ``evaluation/generalization.py``): per
+    benchmark, every policy's SR under each crowd with its change from the first (trained) crowd
+    and the outcome split; each also as ``<output_dir>/generalization_<task>.csv``."""
     sections = []
     for task in cfg.generalization_tasks:
         bounded = task == "BoundedCrowdNav-v0"
@@ -159,47 +154,31 @@ def generalization(cfg: BaselinesConfig, machines: set[str]) -> str:
             name: (overrides, None, _slug(name)) for name, overrides in GENERALIZATION_BASELINES.items()}
         for label, path in trained_models(cfg.models, task).items():
             policies[label] = ({}, PretrainedPolicyConfig(path=path, device=cfg.device), path.name)
-        results: dict[str, dict[str, dict]] = {}
+        results: dict[str, dict[str, list[dict]]] = {}
         for name, (overrides, policy, slug) in policies.items():
             for crowd in cfg.crowds:
                 out = cfg.output_dir / GENERALIZATION / SHORT[task] / crowd / slug
-                result = run_row(cfg, {**env, **CROWDS[crowd]}, overrides, out, policy)
+                result = run_row(cfg, {**env, **crowd_env(crowd)}, overrides, out, policy)
                 machines.add(result["machine"])
-                results.setdefault(name, {})[crowd] = result
+                results.setdefault(name, {})[crowd] = [result]
+        text = generalization_csv(results, cfg.crowds)
+        path = cfg.output_dir / f"{GENERALIZATION}_{SHORT[task]}.csv"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
         title = f"{'Bounded' if bounded else 'original'} CrowdNav, `{cfg.generalization_preset}` preset"
-        ref = cfg.crowds[0]
-        summary = ["| policy | " + " | ".join(f"SR (%), {CROWD_LABELS[c]}" for c in cfg.crowds) + " |",
-                   "|---|" + "---|" * len(cfg.crowds)]
-        for name, by_crowd in results.items():
-            summary.append(f"| {name} | " + " | ".join(_num(by_crowd[c]["sr"]) for c in cfg.crowds) + " |")
-        wall = ["wall CR (%)"] if bounded else []
-        split = ["| policy | crowd | SR (%) | SR change (points) | human CR (%) | "
-                 + "".join(f"{c} | " for c in wall) + "TR (%) | NT (s) | ITR (%) |",
-                 "|---|---|---|---|---|" + "---|" * len(wall) + "---|---|---|"]
-        for name, by_crowd in results.items():
-            for crowd in cfg.crowds:
-                r = by_crowd[crowd]
-                change = "-" if crowd == ref else f"{100 * (r['sr'] - by_crowd[ref]['sr']):+.1f}"
-                split.append(f"| {name} | {CROWD_LABELS[crowd]} | {_num(r['sr'])} | {change} | "
-                             f"{_num(r['cr_human'])} | " + "".join(f"{_num(r['cr_wall'])} | " for _ in wall)
-                             + f"{_num(r['tr'])} | {_num(r['nt'], 1.0, 2)} | {_num(r['itr'])} |")
-        sections.append("\n".join([f"### Crowd generalization: {title}\n", *summary, "",
-                                   f"Outcome split (SR change: against the {CROWD_LABELS[ref]} crowd):", "",
-                                   *split]) + "\n")
-    crowds = "; ".join(f"{CROWD_LABELS[c]}: `{', '.join(f'{k}={v}' for k, v in CROWDS[c].items())}`"
-                       for c in cfg.crowds)
+        sections.append(f"### Crowd generalization: {title}\n\n"
+                        f"{generalization_markdown(read_csv(text), bounded, 'policy')}\n\nCSV: `{path.name}`.\n")
     return "\n".join([f"Every policy on the first {cfg.n_episodes} test seeds in the crowd the trained policies were "
-                      f"trained in and in crowds they never saw ({crowds}; docs/simulator.md, \"Crowd models\"). "
-                      "Rates in % of the episodes.\n", *sections])
+                      f"trained in and in crowds they never saw ({crowds_sentence(cfg.crowds)}; docs/simulator.md, "
+                      f"\"Crowd models\"). SR change: in points, against the {CROWD_LABELS[cfg.crowds[0]]} crowd; "
+                      "collision and timeout rates in % of the episodes.\n", *sections])
 
 
 def baselines(cfg: BaselinesConfig) -> str:
     unknown = set(cfg.only) - set(TABLES) - {GENERALIZATION}
     if unknown:
         raise ValueError(f"unknown tables {sorted(unknown)}; choose from {', '.join([*TABLES, GENERALIZATION])}")
-    bad_crowds = [c for c in cfg.crowds if c not in CROWDS]
-    if bad_crowds or not cfg.crowds:
-        raise ValueError(f"--crowds must list some of {', '.join(CROWDS)}, got {cfg.crowds}")
+    check_crowds(cfg.crowds)
     bad_tasks = [t for t in cfg.generalization_tasks if t not in TASKS]
     if bad_tasks:
         raise ValueError(f"unknown generalization_tasks {bad_tasks}; choose from {', '.join(TASKS)}")

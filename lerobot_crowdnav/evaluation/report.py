@@ -20,6 +20,8 @@ from pathlib import Path
 
 from ..cli import machine_description
 from ..sim.config import SEED_SPLITS
+from .generalization import (CROWD_LABELS, TRAINED, crowds_sentence, generalization_csv, generalization_markdown,
+                             read_csv)
 from .metrics import OUTCOMES, goal_in_wall_zone, outcome, wilson_interval
 from .parameters import parameter_counts
 
@@ -237,6 +239,9 @@ class TaskResults:
     curves: list[tuple[str, Path]] = field(default_factory=list)
     bounded: bool = False  # walls: the wall audit; without (the original benchmark): the boundary audit
     missing_models: list[str] = field(default_factory=list)  # shipped models not found (rows left out)
+    # The generalization table: crowd (other than the trained one, which is ``methods``) -> the
+    # same rows evaluated under it, in the table's column order; empty: no table.
+    crowds: dict[str, list[Method]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -301,6 +306,35 @@ def _provenance(ev: Evaluated, label: str, cmd) -> list[str]:
     return notes
 
 
+def _generalization_lines(t: TaskResults, rows: list[Row], tables: Path, test_episodes: int, seeds: int,
+                          cmd) -> list[str]:
+    """The task's generalization table (``evaluation/generalization.py``): every row of its
+    results table (``rows``, the trained crowd) and the same rows under ``t.crowds``; written to
+    ``tables/generalization_<short>.csv`` (removed when the run has no other crowd)."""
+    path = tables / f"generalization_{t.short}.csv"
+    if not t.crowds:
+        path.unlink(missing_ok=True)  # an earlier invocation's, with crowds this one did not ask for
+        return []
+    results = {row.label: {TRAINED: row.metrics} for row in rows}
+    notes = []
+    for crowd, methods in t.crowds.items():
+        for method in methods:
+            results[method.label][crowd] = [load_metrics(ev.eval_dir / "metrics.json") for ev in method.evaluations]
+            notes += [f"- {method.label}, `{ev.name}`, {CROWD_LABELS[crowd]}: `{cmd(ev.evaluate)}`"
+                      for ev in method.evaluations]
+    crowds = [TRAINED, *t.crowds]
+    csv_text = generalization_csv(results, crowds)
+    path.write_text(csv_text)
+    return ["### Generalization: crowds it was not trained in", "",
+            f"Every row above on the same {test_episodes} test seeds, in the crowd every policy was trained in and "
+            f"in crowds none of them saw ({crowds_sentence(crowds)}; docs/simulator.md, \"Crowd models\"): SR with "
+            "its 95 % Wilson interval, its change from the trained crowd (points), and how the other episodes "
+            "ended, in % of the episodes" + (f" (means over {seeds} training seeds)" if seeds > 1 else "")
+            + f". CSV: `tables/{path.name}`.", "",
+            generalization_markdown(read_csv(csv_text), t.bounded), "",
+            "<details><summary>Commands of the other crowds</summary>", "", *notes, "", "</details>", ""]
+
+
 def write_report(inputs: ReportInputs) -> Path:
     """``<root>/report.md``, ``<root>/tables/*.csv`` and ``<root>/commands.json`` from the metrics
     files of a main-job run; every number with its command, config and seed."""
@@ -348,6 +382,7 @@ def write_report(inputs: ReportInputs) -> Path:
             lines += ["### Boundary audit (original benchmark)", "",
                       "Share of successful episodes in which the robot centre left the 12 x 12 m workspace "
                       "(the original benchmark has no walls). CSV: `tables/boundary_audit.csv`.", "", md, ""]
+        lines += _generalization_lines(t, rows, tables, inputs.test_episodes, seeds, cmd)
     md, csv_text = parameter_table(counts)
     (tables / "parameters.csv").write_text(csv_text)
     lines += ["## Parameter counts", "", "Actor = crowd encoder + denoiser; critic = value head (the frozen "

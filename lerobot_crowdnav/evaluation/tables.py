@@ -13,6 +13,10 @@ CSV format (``report.csv_table``, ``report.wall_audit``). A doc's generated tabl
 outside the markers is left alone. Cells are formatted as in the report (``report.COLUMNS``: SR in
 % with its 95 % Wilson interval, NT in s, ...), ``mean ± std`` where a row averages several seeds.
 tests/test_tables.py fails when a committed table differs from what this writes.
+
+The generalization tables (``main/generalization_<task>.csv``, from a ``make main`` run with its
+default ``--crowds``) are optional: until their file exists, their block says how to make it
+(:data:`NOT_GENERATED`) and the command names what it skipped.
 """
 
 from __future__ import annotations
@@ -26,11 +30,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..cli import run_cli
+from .generalization import generalization_markdown
+from .generalization import read_csv as read_generalization
 from .report import COLUMNS, RESULT_COLUMNS, WALL_AUDIT_HEADERS, Row, csv_table, wall_audit
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ["README.md", "docs/results.md"]  # the files whose tables are generated, relative to the repository
 MAIN_TABLES = ["results_bounded.csv", "results_original.csv", "wall_audit.csv", "boundary_audit.csv", "parameters.csv"]
+GENERALIZATION_TABLES = ["generalization_bounded.csv", "generalization_original.csv"]  # optional
+# The body of an optional block whose data file is missing ({file}: its path under docs/data).
+NOT_GENERATED = ("*Not generated yet* (`docs/data/{file}` is missing): `make main` writes it to "
+                 "`outputs/main/tables/`, then `make tables TABLES_ARGS=--main=outputs/main`.")
 BASELINE_COLUMNS = ["SR", "SR95", "NT", "PL", "ITR", "SD", "CR", "TR", "OOB"]
 MARKER = re.compile(r"<!-- table:(?P<name>[\w-]+) -->\n(?P<body>.*?)<!-- /table -->", re.S)
 
@@ -43,9 +53,10 @@ def import_main(run: Path, data: Path) -> list[Path]:
     missing = [name for name in MAIN_TABLES if not (run / "tables" / name).exists()]
     if missing:
         raise FileNotFoundError(f"{run / 'tables'} lacks {', '.join(missing)}: is {run} a `make main` run folder?")
-    for name in MAIN_TABLES:
+    names = [*MAIN_TABLES, *(name for name in GENERALIZATION_TABLES if (run / "tables" / name).exists())]
+    for name in names:  # a run without other crowds (--crowds=[]) leaves the generalization data as it is
         shutil.copyfile(run / "tables" / name, out / name)
-    return [out / name for name in MAIN_TABLES]
+    return [out / name for name in names]
 
 
 def import_baselines(output_dir: Path, data: Path) -> list[Path]:
@@ -109,14 +120,23 @@ class Part:
 @dataclass(frozen=True)
 class Block:
     """One generated table: its ``kind`` (``results``: report columns ``columns``; ``wall_audit``,
-    ``boundary_audit``, ``parameters``: the report's audit and parameter tables), the header of the
-    leading cells and of the label, and its parts in order."""
+    ``boundary_audit``, ``parameters``: the report's audit and parameter tables; ``generalization``:
+    the report's generalization table of one benchmark, ``bounded`` or not, from one part's file,
+    every row), the header of the leading cells and of the label, and its parts in order.
+    ``optional``: a missing data file gives :data:`NOT_GENERATED` instead of an error."""
 
     kind: str
     parts: list[Part]
     lead: tuple[str, ...] = ()
     label: str = "Method"
     columns: list[str] = field(default_factory=lambda: list(RESULT_COLUMNS))
+    optional: bool = False
+    bounded: bool = False
+
+
+def missing_files(block: Block, data: Path) -> list[str]:
+    """The data files of ``block`` not under ``data`` (paths relative to it)."""
+    return [part.file for part in block.parts if not (data / part.file).exists()]
 
 
 def _rows(data: Path, part: Part) -> list[tuple[str, dict[str, str]]]:
@@ -133,6 +153,12 @@ def _rows(data: Path, part: Part) -> list[tuple[str, dict[str, str]]]:
 
 def render(block: Block, data: Path) -> str:
     """The markdown table of ``block`` from the CSV files under ``data``."""
+    missing = missing_files(block, data)
+    if block.optional and missing:
+        return NOT_GENERATED.format(file=missing[0])
+    if block.kind == "generalization":
+        (part,) = block.parts
+        return generalization_markdown(read_generalization((data / part.file).read_text()), block.bounded, block.label)
     if block.kind == "results":
         header = [*block.lead, block.label, *(COLUMNS[c][3] for c in block.columns)]
     elif block.kind == "wall_audit":
@@ -184,6 +210,10 @@ BLOCKS: dict[str, Block] = {
     "crowdnavpp-orca-baseline": Block("results", [Part("baselines/crowdnavpp_orca_baseline.csv",
                                                        _same("ORCA current-state"))],
                                       label="policy", columns=BASELINE_COLUMNS[:-1]),
+    # docs/results.md: make main's generalization tables (optional until a run with --crowds made them)
+    "generalization-bounded": Block("generalization", [Part("main/generalization_bounded.csv")], optional=True,
+                                    bounded=True),
+    "generalization-original": Block("generalization", [Part("main/generalization_original.csv")], optional=True),
 }
 
 
@@ -221,6 +251,11 @@ def tables(cfg: TablesConfig) -> list[Path]:
         import_main(cfg.main, data)
     if cfg.baselines is not None:
         import_baselines(cfg.baselines, data)
+    skipped = {name: missing_files(block, data)[0] for name, block in BLOCKS.items()
+               if block.optional and missing_files(block, data)}
+    for name, file in skipped.items():
+        print(f"skipped table {name}: docs/data/{file} not generated yet (make main, then "
+              "make tables TABLES_ARGS=--main=outputs/main)")
     changed = []
     for doc in DOCS:
         path = cfg.root / doc

@@ -5,7 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..sim.config import SEED_SPLITS, TASKS
+from ..evaluation.generalization import TRAINED, check_crowds
+from ..sim.config import CROWDS, SEED_SPLITS, TASKS
 
 # The trained models shipped in the repository (hub format: models/<org>/<name>), made by the
 # recipes (docs/recipes.md).
@@ -79,6 +80,11 @@ class MainConfig:
     figure_episode: int = 0
     figure_steps: list[int] = field(default_factory=lambda: [0, 4, 8, 12, 16])
     figure_samples: int = 32
+    # Crowds every row is evaluated in on the test seeds (keys of sim.config.CROWDS): orca, the
+    # crowd every policy is trained in (the results tables), and crowds they never saw,
+    # reactive_orca (humans that see the robot), social_force, reactive_social_force: the report's
+    # generalization table (evaluation/generalization.py). [] or [orca]: the trained crowd only.
+    crowds: list[str] = field(default_factory=lambda: list(CROWDS))
     # Organization of the hub-format repositories (<run>/hub/{datasets,models}/<org>/...).
     hub_org: str = "local"
     # Torch device for training and evaluation (default: cuda when available, else cpu).
@@ -90,6 +96,7 @@ class MainConfig:
         bad = [t for t in self.tasks if t not in TASKS]
         if bad or not self.tasks:
             raise ValueError(f"--tasks must be a non-empty subset of {list(TASKS)}, got {self.tasks}")
+        check_crowds(self.crowds, allow_empty=True)
         if any(h < 1 for h in self.horizons):
             raise ValueError(f"--horizons must be positive, got {self.horizons}")
         if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0:
@@ -114,3 +121,8 @@ class MainConfig:
     @property
     def root(self) -> Path:
         return self.output_root / self.run
+
+    @property
+    def extra_crowds(self) -> list[str]:
+        """The crowds of the generalization table besides the trained one (none: no table)."""
+        return [c for c in self.crowds if c != TRAINED]

@@ -5,10 +5,12 @@ identical tables), the storyboard and multimodality figures of a PDPO policy, an
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Callable
 from pathlib import Path
 
+from ..evaluation.generalization import TRAINED, crowd_flags
 from ..evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
 from ..sim.config import CrowdSimConfig, split_seeds
 from .config import MainConfig
@@ -18,6 +20,17 @@ from .stages import StageRunner
 
 # A learning curve in the report: (caption, image under the run folder).
 Curve = tuple[str, Path]
+# Next to a shipped model's evaluation under another crowd: the digest of the files it was made from.
+POLICY_DIGEST = "policy.sha256"
+
+
+def policy_digest(model_dir: Path) -> str:
+    """SHA-256 over a model directory's weights and configs (``*.safetensors``, ``*.json``)."""
+    h = hashlib.sha256()
+    for path in sorted(Path(model_dir).iterdir()):
+        if path.is_file() and path.suffix in (".safetensors", ".json"):
+            h.update(path.name.encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
 
 
 class Evaluator:
@@ -36,21 +49,36 @@ class Evaluator:
         robot = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().orca_robot.replace("_", "-")
         return [MethodRow(f"ORCA ({robot})", [Evaluation("orca")]), MethodRow("straight", [Evaluation("straight")])]
 
-    def evaluate(self, task: str, ev: Evaluation) -> Stage:
+    def evaluate(self, task: str, ev: Evaluation, crowd: str = TRAINED) -> Stage:
+        """``ev`` on the test seeds, in the trained crowd (the results tables) or in ``crowd`` (the
+        generalization table: its own directory and stage, no GIF)."""
         from ..evaluation.eval import main as eval_main
 
-        out = self.paths.eval_dir(task, ev.name)
+        out = self.paths.eval_dir(task, ev.name, crowd)
         metrics = out / "metrics.json"
         policy = [f"--policy.type={ev.name}"] if ev.policy is None else [f"--policy.path={ev.policy}"]
         if self.cfg.device and ev.policy is not None:
             policy.append(f"--policy.device={self.cfg.device}")
-        argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), f"--eval.n_episodes={self.cfg.test_episodes}",
-                "--eval.split=test", f"--eval.batch_size={min(256, self.cfg.test_episodes)}", "--eval.n_videos=1",
+        trained = crowd == TRAINED
+        argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), *([] if trained else crowd_flags(crowd)),
+                f"--eval.n_episodes={self.cfg.test_episodes}", "--eval.split=test",
+                f"--eval.batch_size={min(256, self.cfg.test_episodes)}", f"--eval.n_videos={int(trained)}",
                 f"--output_dir={out}", "--overwrite=true"]
-        # A shipped model may have been replaced since its last evaluation (under a minute): always run.
-        done = (not self.cfg.rerun_eval and not ev.shipped and metrics.exists()
+        done = (not self.cfg.rerun_eval and metrics.exists()
                 and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
-        return self.runner.run(eval_stage(task, ev.name), argv, done, lambda: eval_main(argv[1:]))
+        digest = out / POLICY_DIGEST
+        if ev.shipped and trained:
+            # A shipped model may have been replaced since its last evaluation (under a minute): always run.
+            done = False
+        elif ev.shipped:  # the other crowds (three times as long): run again when the model's files changed
+            done = done and digest.exists() and digest.read_text() == policy_digest(ev.policy)
+
+        def run() -> None:
+            eval_main(argv[1:])
+            if ev.shipped and not trained:
+                digest.write_text(policy_digest(ev.policy))
+
+        return self.runner.run(eval_stage(task, ev.name, crowd), argv, done, run)
 
     def evaluate_rows(self, task: str, rows: list[MethodRow]) -> list[Method]:
         """Each row's policies on the test seeds, with the stages that made them (provenance)."""
@@ -63,6 +91,17 @@ class Evaluator:
                                            ev.pretrain, ev.finetune, ev.shipped))
             methods.append(Method(row.label, evaluated))
         return methods
+
+    def evaluate_crowds(self, task: str, rows: list[MethodRow]) -> dict[str, list[Method]]:
+        """The generalization table's evaluations: each row's policies on the test seeds under each
+        crowd of ``--crowds`` besides the trained one (``crowd`` -> the rows, as ``evaluate_rows``)."""
+        crowds = {}
+        for crowd in self.cfg.extra_crowds:
+            crowds[crowd] = [Method(row.label, [Evaluated(ev.name, self.paths.eval_dir(task, ev.name, crowd),
+                                                          self.evaluate(task, ev, crowd), ev.policy, ev.seed,
+                                                          ev.pretrain, ev.finetune, ev.shipped)
+                                                for ev in row.evaluations]) for row in rows]
+        return crowds
 
     def figures(self, task: str, shown: Evaluation | None, curves: list[Curve], draw_curves: Callable[[], None],
                 redraw: bool) -> tuple[Stage | None, list[Curve]]:
@@ -100,10 +139,10 @@ class Evaluator:
         return self.runner.run(figures_stage(task), argv, done, run), curves
 
     def task_results(self, task: str, methods: list[Method], figures: Stage | None, curves: list[Curve],
-                     missing: list[str]) -> TaskResults:
+                     missing: list[str], crowds: dict[str, list[Method]] | None = None) -> TaskResults:
         bounded = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().bounded
         return TaskResults(task, TITLE[task], SHORT[task], methods, self.paths.figures_dir(task), figures, curves,
-                           bounded=bounded, missing_models=missing)
+                           bounded=bounded, missing_models=missing, crowds=crowds or {})
 
     def report(self, tasks: list[TaskResults], budget: Budget | None, models: Path | None, wall_time_s: float) -> Path:
         """``report.md``, ``tables/*.csv`` and ``commands.json`` (this invocation's stages, in order)."""

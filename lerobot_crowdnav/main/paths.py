@@ -9,6 +9,8 @@
                                        --ft2_env_steps, <...>_stage2/ continues from its best
         crowdnavpp/<task>_s<seed>/     CrowdNav++ PPO runs (checkpoints/best/pretrained_model)
         eval/<task>/<method>/          metrics.json (+ a GIF of the first test episode)
+        eval/<task>/<method>_<crowd>/  the same under another crowd (--crowds: reactive_orca,
+                                       social_force, reactive_social_force), no GIF
         hub/                           datasets/<org>/<name>, models/<org>/<name>
         figures/<task>/                storyboard, multimodality, fine-tuning curves
         tables/*.csv, commands.json, report.md
@@ -22,6 +24,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+
+from ..evaluation.generalization import TRAINED, crowd_dir
 
 SHORT = {"BoundedCrowdNav-v0": "bounded", "CrowdNav-v0": "original"}
 TITLE = {"BoundedCrowdNav-v0": "Bounded CrowdNav", "CrowdNav-v0": "original CrowdNav"}
@@ -65,8 +69,10 @@ class RunPaths:
     def crowdnavpp_dir(self, task: str, seed: int) -> Path:
         return self.root / "crowdnavpp" / f"{SHORT[task]}_s{seed}"
 
-    def eval_dir(self, task: str, name: str) -> Path:
-        return self.root / "eval" / SHORT[task] / name
+    def eval_dir(self, task: str, name: str, crowd: str = TRAINED) -> Path:
+        """A policy's test-seed evaluation; under a crowd other than the trained one, the same
+        name with the crowd as a suffix."""
+        return crowd_dir(self.root / "eval" / SHORT[task] / name, crowd)
 
     def figures_dir(self, task: str) -> Path:
         return self.root / "figures" / SHORT[task]
@@ -90,8 +96,8 @@ def crowdnavpp_stage(task: str, seed: int) -> str:
     return f"train crowdnavpp {SHORT[task]} seed={seed}"
 
 
-def eval_stage(task: str, name: str) -> str:
-    return f"eval {SHORT[task]} {name}"
+def eval_stage(task: str, name: str, crowd: str = TRAINED) -> str:
+    return f"eval {SHORT[task]} {name}" + ("" if crowd == TRAINED else f" crowd={crowd}")
 
 
 def push_dataset_stage(task: str) -> str:

@@ -25,6 +25,8 @@ adds it back for the comparison with the paper's 2.503 M.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import NamedTuple
 
 import torch
@@ -167,11 +169,25 @@ class NodeRNN(nn.Module):
         x = torch.cat([self.encoder_linear(robot).relu(), self.edge_attention_embed(attended).relu()], -1)
         out = []
         h = memory[None]
-        for t in range(x.shape[0]):
-            h = h * ~starts[t, None, :, None]
-            y, h = self.gru(x[t:t + 1], h)
-            out.append(y)
+        # cuDNN's GRU has no backward outside training mode, and PPO trains this network in eval
+        # mode (rollout and update must agree): then the GRU runs on PyTorch's own kernels.
+        with cudnn_disabled(not self.training and torch.is_grad_enabled()):
+            for t in range(x.shape[0]):
+                h = h * ~starts[t, None, :, None]
+                y, h = self.gru(x[t:t + 1], h)
+                out.append(y)
         return self.output_linear(torch.cat(out)), h[0]
+
+
+@contextmanager
+def cudnn_disabled(disable: bool) -> Iterator[None]:
+    """cuDNN off inside the block when ``disable``; every other cuDNN setting untouched."""
+    enabled = torch.backends.cudnn.enabled
+    torch.backends.cudnn.enabled = enabled and not disable
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.enabled = enabled
 
 
 class CrowdNavPPNet(nn.Module):
@@ -279,6 +295,13 @@ class CrowdNavPPPolicy(PreTrainedPolicy):
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
         """Always strict: missing weights must not load as random ones."""
         return super()._load_as_safetensor(model, model_file, map_location, True)
+
+    def _save_pretrained(self, save_directory, state_dict: dict[str, Tensor] | None = None) -> None:
+        """Each weight saved as its own copy: on a GPU, cuDNN packs the GRU's weights into one
+        buffer they are views of, which safetensors refuses to save."""
+        if state_dict is None:
+            state_dict = {k: v.detach().clone() for k, v in self.state_dict().items()}
+        super()._save_pretrained(save_directory, state_dict=state_dict)
 
     def get_optim_params(self) -> list[nn.Parameter]:
         return list(self.parameters())
