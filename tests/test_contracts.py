@@ -20,16 +20,6 @@ ROOT = Path(__file__).parents[1]
 CODE = [*ROOT.glob("lerobot_crowdnav/**/*.py"), *ROOT.glob("policies/*/*/*.py"), *ROOT.glob("plugins/*/*/*.py"),
         *ROOT.glob("scripts/*.py"), *ROOT.glob("datasets_scripts/*.py")]
 FILE_NAMES = {value for name, value in vars(checkpoint_files).items() if name.isupper() and isinstance(value, str)}
-# Literal file names still typed outside checkpoint_files.py, in modules another change is
-# reworking (evaluation report and baselines, the main job): none may be added; remove an entry
-# once its module reads checkpoint_files.
-PENDING = {
-    "lerobot_crowdnav/evaluation/report.py": {"best.json", "config.json", "model.safetensors"},
-    "lerobot_crowdnav/evaluation/baselines.py": {"model.safetensors"},
-    "lerobot_crowdnav/main/sources.py": {"config.json", "model.safetensors"},
-    "lerobot_crowdnav/main/training.py": {"pretrained_model", "training_state", "training_step.json",
-                                          "train_config.json"},
-}
 
 
 def sources() -> dict[str, str]:
@@ -53,11 +43,11 @@ def test_the_lerobot_and_hub_file_names_are_the_libraries_own():
 
 
 def new_literal_file_names(code: dict[str, str]) -> dict[str, set[str]]:
-    """The checkpoint file names typed as literals outside checkpoint_files.py (``PENDING`` aside)."""
+    """The checkpoint file names typed as literals outside checkpoint_files.py."""
     found: dict[str, set[str]] = {}
     for rel, source in code.items():
         if rel != "lerobot_crowdnav/checkpoint_files.py":
-            names = {value for _, value in constants(source, str) if value in FILE_NAMES} - PENDING.get(rel, set())
+            names = {value for _, value in constants(source, str) if value in FILE_NAMES}
             if names:
                 found[rel] = names
     return found
@@ -69,9 +59,9 @@ def test_checkpoint_file_names_are_typed_in_one_place():
 
 def test_the_file_name_check_fails_on_a_literal():
     code = {**sources(), "lerobot_crowdnav/rl/dppo.py": 'X = Path("run") / "critic.safetensors"\n',
-            "lerobot_crowdnav/main/sources.py": 'X = "best.json"\n'}
+            "lerobot_crowdnav/main/sources.py": 'X = "best.json"\nY = f"{path / \'config.json\'}"\n'}
     assert new_literal_file_names(code) == {"lerobot_crowdnav/rl/dppo.py": {"critic.safetensors"},
-                                            "lerobot_crowdnav/main/sources.py": {"best.json"}}
+                                            "lerobot_crowdnav/main/sources.py": {"best.json", "config.json"}}
 
 
 def test_the_learners_seed_blocks_lie_apart_inside_the_train_split():

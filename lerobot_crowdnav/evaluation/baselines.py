@@ -28,6 +28,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..checkpoint_files import WEIGHTS
 from ..cli import run_cli
 from ..sim.config import CROWDS, TASKS, CrowdSimConfig
 from .eval import (EvalConfig, EvalSettings, OrcaPolicyConfig, PretrainedPolicyConfig, RobotPolicyConfig,
@@ -117,7 +118,7 @@ def run_row(cfg: BaselinesConfig, env: dict, overrides: dict | None, out: Path,
     path = out / "metrics.json"
     if path.exists():
         result = json.loads(path.read_text())
-        weights = Path(policy.path) / "model.safetensors" if isinstance(policy, PretrainedPolicyConfig) else None
+        weights = Path(policy.path) / WEIGHTS if isinstance(policy, PretrainedPolicyConfig) else None
         fresh = weights is None or not weights.exists() or path.stat().st_mtime >= weights.stat().st_mtime
         if result["n_episodes"] == cfg.n_episodes and fresh:
             return result
@@ -136,7 +137,7 @@ def trained_models(models: Path | None, task: str) -> dict[str, Path]:
     found = {}
     for name, label in MODEL_ROWS.items():
         path = Path(models) / name.format(short=SHORT[task])
-        if (path / "model.safetensors").exists():
+        if (path / WEIGHTS).exists():
             found[label] = path
     return found
 

@@ -18,6 +18,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..checkpoint_files import BEST_INFO, POLICY_CONFIG, WEIGHTS
 from ..cli import machine_description
 from ..sim.config import SEED_SPLITS
 from .generalization import (CROWD_LABELS, TRAINED, crowds_sentence, generalization_csv, generalization_markdown,
@@ -296,7 +297,7 @@ def _provenance(ev: Evaluated, label: str, cmd) -> list[str]:
     elif ev.checkpoint is not None and ev.finetune is None:
         notes.append(f"  - pretrained by `{cmd(ev.pretrain)}` (checkpoint `last`)")
     elif ev.checkpoint is not None:  # PPO's `best`: fine-tuned after pretraining, or trained from scratch
-        best = json.loads((ev.checkpoint.parent / "best.json").read_text())
+        best = json.loads((ev.checkpoint.parent / BEST_INFO).read_text())
         start = "pretrained" if ev.pretrain is not None else "initial"
         if ev.pretrain is not None:
             notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
@@ -359,7 +360,7 @@ def write_report(inputs: ReportInputs) -> Path:
                 notes += _provenance(ev, method.label, cmd)
                 if ev.checkpoint is not None and (ev.finetune is not None or ev.shipped) and _is_pdpo(ev.checkpoint):
                     counts[f"{t.title}: {method.label}" + (f", seed {ev.seed}" if ev.seed is not None else "")] = \
-                        parameter_counts(ev.checkpoint / "model.safetensors")
+                        parameter_counts(ev.checkpoint / WEIGHTS)
         seeds = len(b.seeds) if b is not None else 1
         (tables / f"results_{t.short}.csv").write_text(csv_table(rows))
         lines += [f"## {t.title}", "",
@@ -422,4 +423,4 @@ def write_report(inputs: ReportInputs) -> Path:
 
 
 def _is_pdpo(checkpoint: Path) -> bool:
-    return json.loads((Path(checkpoint) / "config.json").read_text()).get("type") == "pdpo"
+    return json.loads((Path(checkpoint) / POLICY_CONFIG).read_text()).get("type") == "pdpo"

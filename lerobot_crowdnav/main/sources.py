@@ -18,6 +18,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+from ..checkpoint_files import POLICY_CONFIG, WEIGHTS
 from ..evaluation.report import Budget, Stage
 from .config import MainConfig
 from .evaluation import Curve
@@ -75,8 +76,8 @@ class ShippedModels(Source):
             found = []
             for label, name in self.names(task).items():
                 path = self.models / name
-                if (path / "model.safetensors").exists():
-                    config = json.loads((path / "config.json").read_text())
+                if (path / WEIGHTS).exists():
+                    config = json.loads((path / POLICY_CONFIG).read_text())
                     horizon = config["horizon"] if config.get("type") == "pdpo" else None
                     if horizon is not None and not name.endswith(f"_h{horizon}"):
                         raise ValueError(f"{path} holds a PDPO policy with H = {horizon}: its row ({label}) needs H = "

@@ -16,7 +16,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from ..checkpoint_files import FINETUNE_CONFIG, TRAIN_PPO_CONFIG
+from ..checkpoint_files import (FINETUNE_CONFIG, PRETRAINED_MODEL, TRAIN_CONFIG, TRAIN_PPO_CONFIG, TRAINING_STATE,
+                                TRAINING_STEP)
 from ..cli import machine_description
 from ..evaluation.report import Stage
 from ..sim.config import PPO_STAGE2_ENV_SEED
@@ -84,7 +85,7 @@ class Training:
         out = self.paths.train_dir(task, h, seed)
         steps = self.bc_steps(task)
         last = out / "checkpoints" / "last"
-        step_file = last / "training_state" / "training_step.json"
+        step_file = last / TRAINING_STATE / TRAINING_STEP
 
         def step_done() -> int:
             return json.loads(step_file.read_text())["step"] if step_file.exists() else 0
@@ -104,7 +105,7 @@ class Training:
             if last.exists():  # a later segment, or interrupted: lerobot-train resumes from its last checkpoint
                 if step_done() >= target:
                     return
-                cmd = ["lerobot-train", f"--config_path={last / 'pretrained_model' / 'train_config.json'}", "--resume=true",
+                cmd = ["lerobot-train", f"--config_path={last / PRETRAINED_MODEL / TRAIN_CONFIG}", "--resume=true",
                        f"--steps={target}"]
             elif out.exists():
                 shutil.rmtree(out)  # started but never checkpointed: lerobot-train refuses an existing dir
@@ -120,7 +121,7 @@ class Training:
                 staging.replace(data)
             for r, target in enumerate(segments):
                 if r:  # a round is skipped once the dataset holds it
-                    dagger_main([f"--policy_path={last / 'pretrained_model'}", f"--root={data}", f"--round={r}",
+                    dagger_main([f"--policy_path={last / PRETRAINED_MODEL}", f"--root={data}", f"--round={r}",
                                  f"--episodes={self.cfg.bc_dagger_episodes}", f"--seed={seed}",
                                  *([f"--device={self.device}"] if self.device else [])])
                 train_to(target)
@@ -134,10 +135,10 @@ class Training:
         c = self.cfg
         out = self.paths.finetune_dir(task, h, seed, stage)
         steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
-        saved = out / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG
+        saved = out / "checkpoints" / "last" / PRETRAINED_MODEL / FINETUNE_CONFIG
         done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= steps
         source = (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
-                  else self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best") / "pretrained_model"
+                  else self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best") / PRETRAINED_MODEL
         argv = ["lerobot-crowdnav-finetune", f"--policy.path={source}",
                 *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
                 f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
@@ -153,7 +154,7 @@ class Training:
         from ..rl.train_ppo import main as train_ppo_main
 
         out = self.paths.crowdnavpp_dir(task, seed)
-        saved = out / "checkpoints" / "last" / "pretrained_model" / TRAIN_PPO_CONFIG
+        saved = out / "checkpoints" / "last" / PRETRAINED_MODEL / TRAIN_PPO_CONFIG
         c = self.cfg
         done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= c.crowdnavpp_env_steps
         argv = ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp", *self._env_flags(task),
@@ -167,18 +168,18 @@ class Training:
     # -- what the stages made ------------------------------------------------------------------
     def pretrained(self, task: str, h: int, seed: int, pretrain: Stage | None = None) -> Evaluation:
         """The BC policy: lerobot-train's ``last`` checkpoint."""
-        path = self.paths.train_dir(task, h, seed) / "checkpoints" / "last" / "pretrained_model"
+        path = self.paths.train_dir(task, h, seed) / "checkpoints" / "last" / PRETRAINED_MODEL
         return Evaluation(f"pdpo_bc_h{h}_s{seed}", path, h, seed, pretrain=pretrain)
 
     def finetuned(self, task: str, h: int, seed: int, pretrain: Stage | None = None,
                   finetune: Stage | None = None) -> Evaluation:
         """The policy's final diffusion-PPO stage's ``best`` checkpoint."""
         out = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
-        return Evaluation(f"pdpo_ft_h{h}_s{seed}", out / "checkpoints" / "best" / "pretrained_model", h, seed,
+        return Evaluation(f"pdpo_ft_h{h}_s{seed}", out / "checkpoints" / "best" / PRETRAINED_MODEL, h, seed,
                           pretrain=pretrain, finetune=finetune)
 
     def crowdnavpp(self, task: str, seed: int, stage: Stage | None = None) -> Evaluation:
-        return Evaluation(f"crowdnavpp_s{seed}", self.paths.crowdnavpp_dir(task, seed) / "checkpoints" / "best" / "pretrained_model",
+        return Evaluation(f"crowdnavpp_s{seed}", self.paths.crowdnavpp_dir(task, seed) / "checkpoints" / "best" / PRETRAINED_MODEL,
                           seed=seed, finetune=stage)
 
     def finetune_curve(self, task: str, h: int, seed: int) -> Path:
@@ -201,7 +202,7 @@ class Training:
         first = read(self.paths.finetune_dir(task, h, seed))
         if 2 not in self.ft_stages:
             return {label: first}
-        best = self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best" / "pretrained_model" / FINETUNE_CONFIG
+        best = self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best" / PRETRAINED_MODEL / FINETUNE_CONFIG
         start = json.loads(best.read_text())["env_steps_done"]
         spent = max(r.get("time/wall_s") or 0.0 for r in first)
         second = [{**r, "env_steps": r["env_steps"] + start,
