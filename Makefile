@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/le
 main: $(STAMP)
 	$(VENV)/bin/lerobot-crowdnav-main $(MAIN_ARGS)
 
-# The results and baseline tables of README.md and docs/results.md, rewritten from docs/data/ (the
+# The results and baseline tables of README.md, docs/results.md and docs/simulator.md, rewritten from docs/data/ (the
 # CSV tables of make main's report and of lerobot-crowdnav-baselines). TABLES_ARGS refreshes
 # docs/data/ from runs first: TABLES_ARGS="--main=outputs/main --baselines=outputs/baselines".
 tables: $(STAMP)

@@ -15,7 +15,8 @@ import pytest
 from lerobot_crowdnav.evaluation.baselines import TABLES, _slug
 from lerobot_crowdnav.evaluation.report import (Row, boundary_audit, cell, csv_table, markdown_table, parameter_table,
                                                  wall_audit)
-from lerobot_crowdnav.evaluation.tables import BLOCKS, DOCS, ROOT, MAIN_TABLES, TablesConfig, regenerate, tables
+from lerobot_crowdnav.evaluation.tables import (BASELINE_COLUMNS, BLOCKS, DOCS, ROOT, MAIN_TABLES, TablesConfig,
+                                                import_baselines, regenerate, tables)
 
 DATA = ROOT / "docs" / "data"
 
@@ -82,7 +83,7 @@ def test_the_command_writes_what_it_reads(tmp_path):
     counts = {"Bounded CrowdNav: PDPO (H = 5, fine-tuned)": {"actor": 831_803, "critic": 197_633}}
     (run / "tables" / "parameters.csv").write_text(parameter_table(counts)[1])
     baseline_rows = {}
-    for t, key in enumerate(("bounded_paper", "original_paper", "crowdnavpp_orca_baseline")):
+    for t, key in enumerate(TABLES):
         _, env, names = TABLES[key]
         baseline_rows[key] = []
         for j, name in enumerate(names):
@@ -103,7 +104,7 @@ def test_the_command_writes_what_it_reads(tmp_path):
     for doc in DOCS:
         assert outside(after[doc]) == outside(before[doc])
         assert blocks(after[doc]) != blocks(before[doc])
-    got = {**blocks(after["README.md"]), **blocks(after["docs/results.md"])}
+    got = {name: body for doc in DOCS for name, body in blocks(after[doc]).items()}
 
     # The main job's tables: exactly the report's own (markdown_table from the metrics themselves).
     assert got["main-bounded"] == markdown_table(main_rows["bounded"])
@@ -130,9 +131,56 @@ def test_the_command_writes_what_it_reads(tmp_path):
         + [line(["original"], r, columns) for r in baseline_rows["original_paper"]])
     assert got["crowdnavpp-orca-baseline"].splitlines()[2:] == [line([], baseline_rows["crowdnavpp_orca_baseline"][1],
                                                                      columns[:-1])]
+    # docs/simulator.md: every row of each table (no OOB in Bounded), each Bounded one's wall audit.
+    for key, (_, env, _) in TABLES.items():
+        name, bounded = "baselines-" + key.replace("_", "-"), env["task"] == "BoundedCrowdNav-v0"
+        if not key.endswith("_paper"):  # the `paper` tables are results.md's (baselines-paper), linked
+            assert got[name].splitlines()[2:] == [line([], r, columns[:-1] if bounded else columns)
+                                                  for r in baseline_rows[key]]
+        if bounded:
+            audit = wall_audit(baseline_rows[key])[0].splitlines()
+            assert got[f"{name}-wall-audit"].splitlines() == [audit[0].replace("| Method |", "| policy |"), *audit[1:]]
 
     # Rerunning from the data now committed changes nothing.
     assert tables(TablesConfig(root=root)) == []
+
+
+def test_a_baselines_import_replaces_only_the_tables_it_holds(tmp_path):
+    """`--baselines=DIR` from a run of some tables (`--only=[...]`): their files are rewritten, every
+    other table's files stay byte for byte; a table with a row missing is an error."""
+    data = tmp_path / "data"
+    shutil.copytree(DATA, data)
+    before = {p.name: p.read_bytes() for p in (data / "baselines").iterdir()}
+    base = tmp_path / "baselines"
+    _, env, names = TABLES["bounded_crowdnavpp"]
+    rows = []
+    for j, name in enumerate(names):
+        m = metrics(0.2 + 0.1 * j, 50, bounded=True, seed=j)
+        (base / "bounded_crowdnavpp" / _slug(name)).mkdir(parents=True)
+        (base / "bounded_crowdnavpp" / _slug(name) / "metrics.json").write_text(json.dumps(m))
+        rows.append(Row(name, [m]))
+    written = import_baselines(base, data)
+    replaced = {"bounded_crowdnavpp.csv", "bounded_crowdnavpp_wall_audit.csv"}
+    assert {p.name for p in written} == replaced
+    assert (data / "baselines" / "bounded_crowdnavpp.csv").read_text() == csv_table(rows, BASELINE_COLUMNS)
+    assert (data / "baselines" / "bounded_crowdnavpp_wall_audit.csv").read_text() == wall_audit(rows)[1]
+    after = {p.name: p.read_bytes() for p in (data / "baselines").iterdir()}
+    assert set(after) == set(before) | replaced
+    kept = set(before) - replaced
+    assert {n: after[n] for n in kept} == {n: before[n] for n in kept}
+
+    (base / "bounded_crowdnavpp" / "straight" / "metrics.json").unlink()
+    with pytest.raises(FileNotFoundError, match="bounded_crowdnavpp is incomplete"):
+        import_baselines(base, data)
+
+
+def test_every_baseline_table_is_generated():
+    """Each lerobot-crowdnav-baselines table (but the generalization one, a `make main` table) has
+    its data in docs/data/baselines, and each file there feeds a generated table."""
+    files = {p.name for p in (DATA / "baselines").glob("*.csv")}
+    assert {f"{key}.csv" for key in TABLES} <= files
+    assert files == {part.file.removeprefix("baselines/") for block in BLOCKS.values() for part in block.parts
+                     if part.file.startswith("baselines/")}
 
 
 def test_bad_markers_and_missing_rows_are_errors(tmp_path):

@@ -1,4 +1,5 @@
-"""The results and baseline tables of README.md and docs/results.md, generated from one source.
+"""The results and baseline tables of README.md, docs/results.md and docs/simulator.md, generated
+from one source.
 
     python -m lerobot_crowdnav.evaluation.tables                    # make tables: rewrite the docs' tables from docs/data/
     python -m lerobot_crowdnav.evaluation.tables --main=outputs/main --baselines=outputs/baselines
@@ -8,7 +9,8 @@
 The source is ``docs/data/`` (committed): ``main/*.csv``, the CSV tables of ``make main``'s report
 (``<run>/tables/``, copied as they are), and ``baselines/<table>.csv`` (+ ``<table>_wall_audit.csv``
 for Bounded), each ``lerobot-crowdnav-baselines`` table's ``metrics.json`` files in the report's
-CSV format (``report.csv_table``, ``report.wall_audit``). A doc's generated table sits between
+CSV format (``report.csv_table``, ``report.wall_audit``); ``--baselines=DIR`` replaces only the
+tables DIR holds, the others' files stay as they are. A doc's generated table sits between
 ``<!-- table:NAME -->`` and ``<!-- /table -->`` (NAME: a key of :data:`BLOCKS`); everything
 outside the markers is left alone. Cells are formatted as in the report (``report.COLUMNS``: SR in
 % with its 95 % Wilson interval, NT in s, ...), ``mean ± std`` where a row averages several seeds.
@@ -35,7 +37,8 @@ from .generalization import read_csv as read_generalization
 from .report import COLUMNS, RESULT_COLUMNS, WALL_AUDIT_HEADERS, Row, csv_table, wall_audit
 
 ROOT = Path(__file__).resolve().parents[2]
-DOCS = ["README.md", "docs/results.md"]  # the files whose tables are generated, relative to the repository
+# The files whose tables are generated, relative to the repository.
+DOCS = ["README.md", "docs/results.md", "docs/simulator.md"]
 MAIN_TABLES = ["results_bounded.csv", "results_original.csv", "wall_audit.csv", "boundary_audit.csv", "parameters.csv"]
 GENERALIZATION_TABLES = ["generalization_bounded.csv", "generalization_original.csv"]  # optional
 # The body of an optional block whose data file is missing ({file}: its path under docs/data).
@@ -190,6 +193,21 @@ def _same(*labels: str) -> dict[str, str]:
     return {label: label for label in labels}
 
 
+def _baseline_blocks(key: str, *, bounded: bool, results: bool = True) -> dict[str, Block]:
+    """The blocks of one ``lerobot-crowdnav-baselines`` table (``baselines/<key>.csv``), named
+    ``baselines-<key>`` (``_`` as ``-``): every row, the baseline columns (no OOB in Bounded, where
+    the robot cannot leave), and in Bounded ``baselines-<key>-wall-audit`` (``<key>_wall_audit.csv``).
+    ``results=False``: the wall audit only."""
+    name = "baselines-" + key.replace("_", "-")
+    blocks = {}
+    if results:
+        blocks[name] = Block("results", [Part(f"baselines/{key}.csv")], label="policy",
+                             columns=BASELINE_COLUMNS[:-1] if bounded else BASELINE_COLUMNS)
+    if bounded:
+        blocks[f"{name}-wall-audit"] = Block("wall_audit", [Part(f"baselines/{key}_wall_audit.csv")], label="policy")
+    return blocks
+
+
 _MAIN_ROWS = {"bounded": "main/results_bounded.csv", "original": "main/results_original.csv"}
 BLOCKS: dict[str, Block] = {
     # README.md: both benchmarks in one table.
@@ -214,6 +232,15 @@ BLOCKS: dict[str, Block] = {
     "generalization-bounded": Block("generalization", [Part("main/generalization_bounded.csv")], optional=True,
                                     bounded=True),
     "generalization-original": Block("generalization", [Part("main/generalization_original.csv")], optional=True),
+    # docs/simulator.md, "Baselines": the lerobot-crowdnav-baselines tables results.md does not show
+    # (its `paper` tables are linked there, not repeated), each Bounded one with its wall audit
+    # (the human / wall collision split); the wall times of baselines.md are not deterministic.
+    **_baseline_blocks("bounded_paper", bounded=True, results=False),
+    **_baseline_blocks("bounded_crowdnavpp", bounded=True),
+    **_baseline_blocks("original_crowdnavpp", bounded=False),
+    **_baseline_blocks("bounded_crowdnavpp_fixed", bounded=True),
+    **_baseline_blocks("original_crowdnavpp_fixed", bounded=False),
+    **_baseline_blocks("crowdnavpp_orca_baseline", bounded=False),  # both robots (results.md: current-state)
 }
 
 
@@ -234,7 +261,8 @@ def regenerate(text: str, data: Path, blocks: dict[str, Block] = BLOCKS) -> str:
 class TablesConfig:
     # A `make main` run folder whose tables/*.csv replace docs/data/main/ first (default: keep them).
     main: Path | None = None
-    # A lerobot-crowdnav-baselines output directory whose tables replace docs/data/baselines/ first.
+    # A lerobot-crowdnav-baselines output directory whose tables replace theirs in docs/data/baselines/
+    # first (tables it does not hold keep their files).
     baselines: Path | None = None
     # Only report the docs whose tables differ from docs/data/ (exit 1 if any), rewrite nothing.
     check: bool = False
