@@ -292,22 +292,31 @@ def _pref_velocity(dx, dy):
 
 
 @nb.njit(cache=True)
+def _human_sim_radii(i, hr, sim_r, sim_nd, p, neighbor_dist, radii):
+    """Human ``i``'s padded ORCA radii of the others (into ``radii[:n]``) and its neighbour
+    distance (returned): the live ones, or with persistent simulators those its simulator (row
+    ``1 + i`` of ``sim_r``/``sim_nd``) was built with at its first call, building it now if it
+    was created since (0 = not built)."""
+    if p.persistent:
+        if sim_nd[1 + i] == 0.0:
+            sim_r[1 + i, :] = hr
+            sim_nd[1 + i] = neighbor_dist
+        held, nd_i = sim_r[1 + i], sim_nd[1 + i]
+    else:
+        held, nd_i = hr, neighbor_dist
+    for j in range(p.n_humans):
+        radii[j] = held[j] + p.orca_pad
+    return nd_i
+
+
+@nb.njit(cache=True)
 def _humans_orca(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_dist, no_obst, s, out):
     """New velocities of all humans: each solves ORCA as agent 0 among all other humans (the
-    robot is invisible to them; no walls). With persistent simulators, human ``i`` sees the radii
-    and neighbour distance its simulator (row ``1 + i`` of ``sim_r``/``sim_nd``) was built with at
-    its first call, building it now if it was created since (0 = not built)."""
+    robot is invisible to them; no walls), with the radii and neighbour distance of
+    :func:`_human_sim_radii`."""
     n = p.n_humans
     for i in range(n):
-        if p.persistent:
-            if sim_nd[1 + i] == 0.0:
-                sim_r[1 + i, :] = hr
-                sim_nd[1 + i] = neighbor_dist
-            held, nd_i = sim_r[1 + i], sim_nd[1 + i]
-        else:
-            held, nd_i = hr, neighbor_dist
-        for j in range(n):
-            s.radii[j] = held[j] + p.orca_pad
+        nd_i = _human_sim_radii(i, hr, sim_r, sim_nd, p, neighbor_dist, s.radii)
         px_, py_ = _pref_velocity(hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1])
         out[i, 0], out[i, 1] = compute_new_velocity(
             i, hp, hv, s.radii, all_idx, n, hvp[i], px_, py_, nd_i, n,
@@ -330,15 +339,7 @@ def _humans_orca_robot(hp, hv, hg, hr, hvp, sim_r, sim_nd, all_idx, p, neighbor_
     s.agents_vel[n, 0], s.agents_vel[n, 1] = rvx, rvy
     s.radii[n] = p.robot_radius + p.orca_pad
     for i in range(n):
-        if p.persistent:
-            if sim_nd[1 + i] == 0.0:
-                sim_r[1 + i, :] = hr
-                sim_nd[1 + i] = neighbor_dist
-            held, nd_i = sim_r[1 + i], sim_nd[1 + i]
-        else:
-            held, nd_i = hr, neighbor_dist
-        for j in range(n):
-            s.radii[j] = held[j] + p.orca_pad
+        nd_i = _human_sim_radii(i, hr, sim_r, sim_nd, p, neighbor_dist, s.radii)
         px_, py_ = _pref_velocity(hg[i, 0] - hp[i, 0], hg[i, 1] - hp[i, 1])
         out[i, 0], out[i, 1] = compute_new_velocity(
             i, s.agents_pos, s.agents_vel, s.radii, all_idx, n + 1, hvp[i], px_, py_, nd_i, n,
