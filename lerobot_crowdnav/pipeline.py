@@ -68,7 +68,8 @@ class Pipeline:
             curves, draw_curves = self.source.curves(task)
             figures, curves = self.evaluator.figures(task, self.source.figure_policy(task), curves, draw_curves,
                                                      self.source.redraw)
-            crowds = self.evaluator.evaluate_crowds(task, rows)  # the generalization table (--crowds)
+            crowds = {crowd: self.evaluator.evaluate_rows(task, rows, crowd)  # the generalization table
+                      for crowd in self.cfg.extra_crowds}
             tasks.append(self.evaluator.task_results(task, methods, figures, curves, self.source.missing(task), crowds))
         report = self.evaluator.report(tasks, self.source.budget(), self.source.models, time.perf_counter() - start)
         print(f"[main] report: {report}")

@@ -80,28 +80,12 @@ class Evaluator:
 
         return self.runner.run(eval_stage(task, ev.name, crowd), argv, done, run)
 
-    def evaluate_rows(self, task: str, rows: list[MethodRow]) -> list[Method]:
-        """Each row's policies on the test seeds, with the stages that made them (provenance)."""
-        methods = []
-        for row in rows:
-            evaluated = []
-            for ev in row.evaluations:
-                stage = self.evaluate(task, ev)
-                evaluated.append(Evaluated(ev.name, self.paths.eval_dir(task, ev.name), stage, ev.policy, ev.seed,
-                                           ev.pretrain, ev.finetune, ev.shipped))
-            methods.append(Method(row.label, evaluated))
-        return methods
-
-    def evaluate_crowds(self, task: str, rows: list[MethodRow]) -> dict[str, list[Method]]:
-        """The generalization table's evaluations: each row's policies on the test seeds under each
-        crowd of ``--crowds`` besides the trained one (``crowd`` -> the rows, as ``evaluate_rows``)."""
-        crowds = {}
-        for crowd in self.cfg.extra_crowds:
-            crowds[crowd] = [Method(row.label, [Evaluated(ev.name, self.paths.eval_dir(task, ev.name, crowd),
-                                                          self.evaluate(task, ev, crowd), ev.policy, ev.seed,
-                                                          ev.pretrain, ev.finetune, ev.shipped)
-                                                for ev in row.evaluations]) for row in rows]
-        return crowds
+    def evaluate_rows(self, task: str, rows: list[MethodRow], crowd: str = TRAINED) -> list[Method]:
+        """Each row's policies on the test seeds in ``crowd``, with the stages that made them (provenance)."""
+        return [Method(row.label, [Evaluated(ev.name, self.paths.eval_dir(task, ev.name, crowd),
+                                             self.evaluate(task, ev, crowd), ev.policy, ev.seed,
+                                             ev.pretrain, ev.finetune, ev.shipped)
+                                   for ev in row.evaluations]) for row in rows]
 
     def figures(self, task: str, shown: Evaluation | None, curves: list[Curve], draw_curves: Callable[[], None],
                 redraw: bool) -> tuple[Stage | None, list[Curve]]:
