@@ -27,7 +27,7 @@ def latency_ms(path: str, ddim_steps: int, task: str, calls: int, threads: int) 
     import torch
 
     import lerobot_crowdnav  # noqa: F401  (registers the envs)
-    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+    from lerobot_crowdnav.measure.episodes import LearnedPolicy
     from lerobot_crowdnav.sim.config import SEED_SPLITS
 
     torch.set_num_threads(threads)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot_crowdnav.cli import run_cli
-from lerobot_crowdnav.evaluation.metrics import wilson_interval
+from lerobot_crowdnav.measure.metrics import wilson_interval
 
 HEADER = ["remedy", "val SR (%) [95 % CI]", "test SR (%) [95 % CI]", "test human CR (%)", "test wall CR (%)",
           "test TR (%)", "velocity follow", "goal turn (deg)", "pretraining cost"]

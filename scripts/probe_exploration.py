@@ -36,7 +36,7 @@ import torch
 from tqdm import tqdm
 
 from lerobot_crowdnav.cli import machine_description, run_cli
-from lerobot_crowdnav.evaluation.episodes import json_safe
+from lerobot_crowdnav.measure.episodes import json_safe
 from lerobot_crowdnav.rl.config import DiffusionPPOConfig
 from lerobot_crowdnav.rl.dppo import load_agent
 from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds

@@ -36,7 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_crowdnav.cli import machine_description, run_cli
-from lerobot_crowdnav.evaluation.episodes import LearnedPolicy, json_safe
+from lerobot_crowdnav.measure.episodes import LearnedPolicy, json_safe
 from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
 from lerobot_crowdnav.sim.engine import RUNNING, CrowdSim
 

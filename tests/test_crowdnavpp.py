@@ -349,7 +349,7 @@ def test_agent_scores_a_rollout_as_it_acted():
 def test_tiny_training_run_writes_a_checkpoint_that_loads_and_evaluates(tmp_path):
     import json
 
-    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+    from lerobot_crowdnav.measure.episodes import LearnedPolicy
     from lerobot_crowdnav.evaluation.eval import main as eval_main
 
     out = tmp_path / "run"

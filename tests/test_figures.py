@@ -11,7 +11,7 @@ from conftest import make_tiny_checkpoint
 from PIL import Image
 
 from lerobot_crowdnav.evaluation import figures
-from lerobot_crowdnav.evaluation.plots import chunk_positions, plot_multimodality, plot_storyboard
+from lerobot_crowdnav.measure.plots import chunk_positions, plot_multimodality, plot_storyboard
 from lerobot_crowdnav.sim.config import CrowdSimConfig
 from lerobot_crowdnav.sim.envs import CrowdNavEnv, structured
 

@@ -401,7 +401,7 @@ def test_bad_input_is_refused_before_any_work(pretrained, tmp_path):
 
 
 def test_evaluation_refuses_an_env_with_another_sentinel(pretrained):
-    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+    from lerobot_crowdnav.measure.episodes import LearnedPolicy
 
     with pytest.raises(ValueError, match="--env.sentinel"):
         LearnedPolicy(pretrained, "cpu", 269, sentinel=10.0)

@@ -20,7 +20,6 @@ PACKAGES = {  # top-level package -> its directory
     "lerobot_policy_pdpo": ROOT / "policies" / "lerobot_policy_pdpo" / "lerobot_policy_pdpo",
     "lerobot_policy_crowdnavpp": ROOT / "policies" / "lerobot_policy_crowdnavpp" / "lerobot_policy_crowdnavpp",
 }
-EV = "lerobot_crowdnav.evaluation"
 MAIN = "lerobot_crowdnav.main"
 # Lowest first. A module belongs to the layer of its longest listed prefix (a package or a module).
 LAYERS: list[tuple[str, list[str]]] = [
@@ -28,12 +27,11 @@ LAYERS: list[tuple[str, list[str]]] = [
               "lerobot_crowdnav.checkpoint_files"]),
     # The package's __init__ registers the gymnasium envs (reads sim.config), hence this layer.
     ("sim", ["lerobot_crowdnav", "lerobot_crowdnav.sim", "lerobot_env_crowdnav"]),
-    ("evaluation core", [EV, f"{EV}.metrics", f"{EV}.episodes", f"{EV}.plots", f"{EV}.parameters"]),
+    ("measure: episodes, metrics, plots, parameter counts", ["lerobot_crowdnav.measure"]),
     ("data", ["lerobot_crowdnav.data"]),
     ("policy", ["lerobot_policy_pdpo", "lerobot_policy_crowdnavpp"]),
     ("rl", ["lerobot_crowdnav.rl"]),
-    ("evaluation CLIs and report", [f"{EV}.eval", f"{EV}.baselines", f"{EV}.figures", f"{EV}.report", f"{EV}.tables",
-                                    f"{EV}.generalization"]),
+    ("evaluation: CLIs, report, tables", ["lerobot_crowdnav.evaluation"]),
     # The main job in parts (lerobot_crowdnav/main/), each above the ones it needs.
     ("main job: config, run folder, row type", [MAIN, f"{MAIN}.config", f"{MAIN}.paths", f"{MAIN}.rows"]),
     ("main job: stage runner", [f"{MAIN}.stages"]),
@@ -108,7 +106,7 @@ def test_imports_only_go_down():
 
 
 @pytest.mark.parametrize("module, source", [
-    ("lerobot_crowdnav.sim.engine", "from ..evaluation.metrics import EpisodeRecord"),  # sim -> evaluation
+    ("lerobot_crowdnav.sim.engine", "from ..measure.metrics import EpisodeRecord"),  # sim -> measure
     ("lerobot_crowdnav.data.collect", "import lerobot_crowdnav.rl.loop"),  # absolute, data -> rl
     ("lerobot_crowdnav.evaluation.report", "def write_report():\n    from ..pipeline import SHORT\n"),  # the old cycle
     ("lerobot_crowdnav.rl.validation", "from ..evaluation.eval import main"),  # rl -> evaluation CLI
@@ -165,7 +163,7 @@ def test_the_reach_check_fails_on_a_module_only_tests_import():
 
 def test_same_and_lower_layers_pass():
     known = set(all_modules())
-    assert violations("lerobot_crowdnav.rl.validation", "from ..evaluation.episodes import run_episodes\n"
+    assert violations("lerobot_crowdnav.rl.validation", "from ..measure.episodes import run_episodes\n"
                       "from .loop import restart_memory\nimport numpy", False, known) == []
     assert violations("lerobot_crowdnav.main.sources", "from .training import Training\nfrom .evaluation import Curve\n"
                       "from ..evaluation.report import Budget", False, known) == []

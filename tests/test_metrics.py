@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from lerobot_crowdnav.evaluation.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
+from lerobot_crowdnav.measure.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
 from lerobot_crowdnav.sim.config import CrowdSimConfig
 from lerobot_crowdnav.sim.engine import CrowdSim
 

@@ -287,7 +287,7 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
                f"--output_dir={tmp_path / 'crowdnav_eval'}"])
     metrics = json.loads((tmp_path / "crowdnav_eval" / "metrics.json").read_text())
     assert metrics["n_episodes"] == 4 and metrics["policy"] == "train@000020"
-    from lerobot_crowdnav.evaluation.episodes import LearnedPolicy
+    from lerobot_crowdnav.measure.episodes import LearnedPolicy
 
     with_ema, raw = LearnedPolicy(ckpt, "cpu", 269), LearnedPolicy(ckpt, "cpu", 269, use_ema=False)  # --policy.use_ema
     assert with_ema.policy.sampling_actor() is with_ema.policy.ema

@@ -49,7 +49,7 @@ def test_tables_from_hand_made_metrics():
 
 
 def test_wilson_interval_against_known_values():
-    from lerobot_crowdnav.evaluation.metrics import wilson_interval
+    from lerobot_crowdnav.measure.metrics import wilson_interval
 
     assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)  # not [0, 0] as the normal one
     assert wilson_interval(10, 10) == pytest.approx((0.7225, 1.0), abs=1e-4)

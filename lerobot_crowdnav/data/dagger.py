@@ -139,7 +139,7 @@ def learner_round(sim: CrowdSim, policy, seeds: list[int], every: int, horizon: 
 
 
 def dagger(cfg: DaggerConfig) -> dict:
-    from ..evaluation.episodes import LearnedPolicy
+    from ..measure.episodes import LearnedPolicy
 
     cfg.validate()
     root = Path(cfg.root)

@@ -109,7 +109,7 @@ def split_repo_id(repo_id: str) -> tuple[str, str]:
 
 def evaluation_lines(metrics: dict | None) -> list[str]:
     """A model card's evaluation section: the metrics.json of lerobot-crowdnav-eval as a table."""
-    from ..evaluation.metrics import markdown_header, markdown_row
+    from ..measure.metrics import markdown_header, markdown_row
 
     lines = ["", "## Evaluation", ""]
     if not metrics:
@@ -199,7 +199,7 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
 
     from huggingface_hub import ModelCard, ModelCardData
 
-    from ..evaluation.parameters import parameter_counts
+    from ..measure.parameters import parameter_counts
 
     train = json.loads((pretrained / TRAIN_CONFIG).read_text()) if (pretrained / TRAIN_CONFIG).exists() else {}
     finetune_path = pretrained / FINETUNE_CONFIG

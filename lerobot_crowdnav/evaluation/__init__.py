@@ -1,10 +1,7 @@
-"""Evaluation, in two layers (docs/architecture.md):
-
-- below ``data/`` and ``rl/``: ``metrics`` (episode records, the benchmark metrics, markdown rows),
-  ``episodes`` (``run_episodes``, ``LearnedPolicy``, ``json_safe``), ``plots`` (matplotlib figures),
-  ``parameters`` (checkpoint parameter counts);
-- above ``rl/``: ``eval`` (the ``lerobot-crowdnav-eval`` CLI), ``baselines``, ``figures`` and
-  ``report`` (the main job's report from typed inputs).
+"""Evaluation's commands and report, above ``rl/`` (docs/architecture.md): ``eval`` (the
+``lerobot-crowdnav-eval`` CLI), ``baselines`` (``lerobot-crowdnav-baselines``), ``figures``,
+``generalization``, ``report`` (the main job's report from typed inputs) and ``tables``
+(``make tables``). What they measure with lives below ``data/`` and ``rl/``, in ``measure/``.
 
 Imports nothing at package import.
 """

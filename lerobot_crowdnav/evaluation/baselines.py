@@ -35,7 +35,7 @@ from .eval import (EvalConfig, EvalSettings, OrcaPolicyConfig, PretrainedPolicyC
                    StraightPolicyConfig, evaluate)
 from .generalization import (CROWD_LABELS, check_crowds, crowd_env, crowds_sentence, generalization_csv,
                              generalization_markdown, read_csv)
-from .metrics import markdown_header, markdown_row
+from ..measure.metrics import markdown_header, markdown_row
 from .report import Row, wall_audit
 
 LA, CS = dict(orca_robot="look_ahead"), dict(orca_robot="current_state")
@@ -202,7 +202,7 @@ def baselines(cfg: BaselinesConfig) -> str:
             audited.append(Row(name, [result]))
         if bounded:
             md, _, facts = wall_audit(audited)
-            lines += ["", f"Wall audit (% of the episodes; `evaluation/metrics.outcome`). {facts}", "", md]
+            lines += ["", f"Wall audit (% of the episodes; `measure/metrics.outcome`). {facts}", "", md]
         sections.append("\n".join(lines) + "\n")
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     if GENERALIZATION in cfg.only:

@@ -8,7 +8,7 @@ Runs one episode with the PDPO policy replanning every step (receding horizon: s
 execute its first action) and, at the chosen steps, keeps the observation, the executed chunk and
 ``n_samples`` more chunks sampled for the same observation. Writes ``storyboard.png`` (the planned
 path of the executed chunk, step by step) and ``multimodality.png`` (the spread of the sampled
-chunks): see :func:`lerobot_crowdnav.evaluation.plots.plot_storyboard` and ``plot_multimodality``.
+chunks): see :func:`lerobot_crowdnav.measure.plots.plot_storyboard` and ``plot_multimodality``.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from pathlib import Path
 from ..cli import run_cli
 from ..sim.config import SEED_SPLITS, CrowdSimConfig
 from ..sim.envs import CrowdNavEnv
-from .episodes import LearnedPolicy
-from .plots import plot_multimodality, plot_storyboard
+from ..measure.episodes import LearnedPolicy
+from ..measure.plots import plot_multimodality, plot_storyboard
 
 
 def record_snapshots(policy_path: str | Path, sim_cfg: CrowdSimConfig, seed: int, steps: list[int],

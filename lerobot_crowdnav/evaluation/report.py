@@ -23,8 +23,8 @@ from ..cli import machine_description
 from ..sim.config import SEED_SPLITS
 from .generalization import (CROWD_LABELS, TRAINED, crowds_sentence, generalization_csv, generalization_markdown,
                              read_csv)
-from .metrics import OUTCOMES, goal_in_wall_zone, outcome, wilson_interval
-from .parameters import parameter_counts
+from ..measure.metrics import OUTCOMES, goal_in_wall_zone, outcome, wilson_interval
+from ..measure.parameters import parameter_counts
 
 # column -> (metrics key, scale, digits, header)
 COLUMNS = {

@@ -93,7 +93,7 @@ class Evaluator:
         learning curves that ``draw_curves`` writes (after the two figures); ``redraw``: draw them
         even when they exist (the policies may have been replaced: seconds)."""
         from ..evaluation.figures import record_snapshots
-        from ..evaluation.plots import plot_multimodality, plot_storyboard
+        from ..measure.plots import plot_multimodality, plot_storyboard
 
         if shown is None:
             return None, []

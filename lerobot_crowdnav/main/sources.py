@@ -153,7 +153,7 @@ class TrainedFromScratch(Source):
 
     def curves(self, task: str) -> tuple[list[Curve], Callable[[], None]]:
         """This run's fine-tuning curves, every horizon (and stage) on one figure."""
-        from ..evaluation.plots import plot_finetune_curves
+        from ..measure.plots import plot_finetune_curves
 
         image = self.training.paths.figures_dir(task) / "finetune_curves.png"
         caption = ("Fine-tuning: training success rate and average episode reward against environment steps "

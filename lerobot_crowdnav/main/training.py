@@ -185,7 +185,7 @@ class Training:
     def finetune_curve(self, task: str, h: int, seed: int) -> Path:
         """A policy's fine-tuning curve for its card: the trainer's own with one stage, every stage
         on one axis with two."""
-        from ..evaluation.plots import plot_finetune_curves
+        from ..measure.plots import plot_finetune_curves
 
         last = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
         if len(self.ft_stages) == 1:

@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from ..evaluation.episodes import json_safe
+from ..measure.episodes import json_safe
 
 
 class RunLog:
@@ -52,6 +52,6 @@ class RunLog:
         self.writer.close()
         if self.wandb is not None:
             self.wandb.finish()
-        from ..evaluation.plots import plot_finetune_curves
+        from ..measure.plots import plot_finetune_curves
 
         plot_finetune_curves({self.out.name: self.records}, self.out / "training_curves.png")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..evaluation.episodes import run_episodes
-from ..evaluation.metrics import compute_metrics
+from ..measure.episodes import run_episodes
+from ..measure.metrics import compute_metrics
 from ..sim.engine import EVENT_NAMES
 from .loop import restart_memory
 
