@@ -156,7 +156,18 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert portable(" ".join(["lerobot-crowdnav-main", *argv])) in card and f"--output_root={tiny_main}" not in card
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
         assert f"| finetune2 {task} H=5 seed=1000 | " in card and "- It continued a fine-tuned checkpoint: " in card
-        assert "- Checkpoint: the run's `best`, at " in card
+        # the policy is the checkpoint chosen on the validation seeds (tiny.yaml: ft_select_top 2, 2 episodes)
+        sel = json.loads((root / "select" / f"{task}_h5_s1000" / "selected.json").read_text())
+        assert (sel["episodes"], sel["split"], sel["chosen"]) == (2, "val", max(
+            sel["candidates"], key=lambda r: (r["val_success_rate"], -r["env_steps"])))
+        for r in sel["candidates"]:
+            m = json.loads((root / "select" / f"{task}_h5_s1000" / f"{r['env_steps']:09d}" / "metrics.json").read_text())
+            assert (m["split"], m["n_episodes"], m["sr"]) == ("val", 2, r["val_success_rate"])
+        chosen = Path(sel["chosen"]["policy"])
+        assert (model / "model.safetensors").read_bytes() == (chosen / "model.safetensors").read_bytes()
+        assert f"--policy.path={chosen}" in json.loads((root / "commands.json").read_text())[f"eval {task} pdpo_ft_h5_s1000"]
+        assert f"- Checkpoint: the one at {sel['chosen']['env_steps']:,} env steps of the last fine-tuning stage" in card
+        assert f"| select {task} H=5 seed=1000 | " in card
         stages_curve = root / "finetune" / f"{task}_h5_s1000_stage2" / "training_curves_stages.png"
         assert (model / "learning_curve.png").read_bytes() == stages_curve.read_bytes()  # both stages on one axis
         # the shipped policy is stage 2's: it started from stage 1's best with its own flags and seeds
@@ -197,6 +208,25 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert "| pretrain bounded H=5 seed=1000 |" in rerun and "skipped (complete)" in rerun
     pipeline_main(argv + ["--rerun_eval=true"])
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
+
+
+def test_select_candidates_are_the_best_read_saved_checkpoints(tmp_path):
+    """Readings without a saved checkpoint are not candidates, ``best`` is one wherever it was
+    saved, ties go to the earlier checkpoint, and a reading logged twice (a resumed run) counts once."""
+    from lerobot_crowdnav.main.training import select_candidates
+
+    readings = {0: 0.70, 100: 0.74, 200: 0.76, 300: 0.74, 400: 0.80, 500: 0.74, 600: 0.72}
+    lines = [{"env_steps": s, "val/success_rate": r} for s, r in readings.items()] + [{"env_steps": 150, "loss": 1.0}]
+    (tmp_path / "progress.jsonl").write_text("\n".join(json.dumps(x) for x in [*lines, lines[3]]))
+    for steps in (100, 300, 500, 600, 700):  # 400 (the best reading) was never saved under its number
+        (tmp_path / "checkpoints" / f"{steps:09d}" / "pretrained_model").mkdir(parents=True)
+    (tmp_path / "checkpoints" / "best" / "pretrained_model").mkdir(parents=True)
+    (tmp_path / "checkpoints" / "best" / "best.json").write_text(json.dumps({"env_steps": 400}))
+    got = select_candidates(tmp_path, 3)
+    assert [(s, r) for s, r, _ in got] == [(400, 0.80), (100, 0.74), (300, 0.74)]
+    assert got[0][2] == tmp_path / "checkpoints" / "best" / "pretrained_model"
+    assert got[1][2] == tmp_path / "checkpoints" / "000000100" / "pretrained_model"
+    assert [s for s, _, _ in select_candidates(tmp_path, 10)] == [400, 100, 300, 500, 600]
 
 
 def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path):

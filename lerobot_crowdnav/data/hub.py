@@ -121,10 +121,13 @@ def evaluation_lines(metrics: dict | None) -> list[str]:
                     markdown_row(row, bounded)]
 
 
-def best_checkpoint_lines(pretrained: Path) -> list[str]:
-    """Why these weights: a PPO run's ``checkpoints/best`` has ``best.json`` beside it."""
+def best_checkpoint_lines(pretrained: Path, recipe: dict | None = None) -> list[str]:
+    """Why these weights: how the main job chose them (``recipe["checkpoint"]``), or a PPO run's
+    ``checkpoints/best``, which has ``best.json`` beside it."""
     import json
 
+    if recipe and recipe.get("checkpoint"):
+        return [recipe["checkpoint"]]
     best = pretrained.parent / BEST_INFO
     if not best.exists():
         return []
@@ -257,7 +260,7 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
                          f"before (freeze_encoder {prev['ppo'].get('freeze_encoder', False)}, clip "
                          f"{prev['ppo']['clip_ploss_coef_base']} -> {prev['ppo']['clip_ploss_coef']}; "
                          "`source_finetune_config.json` has every setting), from the same pretraining.")
-        lines += best_checkpoint_lines(pretrained)
+        lines += best_checkpoint_lines(pretrained, recipe)
     lines += card_tail(repo_id, metrics, recipe, curve, finetune, "diffusion-PPO",
                        "demonstrations, pretraining, fine-tuning, evaluation, this directory")
     data = ModelCardData(license="apache-2.0", library_name="lerobot", pipeline_tag="robotics",
@@ -310,7 +313,7 @@ def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict 
             f"{run['seed']}: Adam lr {ppo['actor_lr']} eps {ppo['adam_eps']}, {ppo['n_steps']}-step rollouts, "
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef']}, clipped value loss {ppo['clip_vloss']}, "
             f"gradient norm {ppo['max_grad_norm']}; `train_ppo_config.json` has every setting.")
-        lines += best_checkpoint_lines(pretrained)
+        lines += best_checkpoint_lines(pretrained, recipe)
     else:
         lines.append("- Not trained by lerobot-crowdnav-train-ppo (no `train_ppo_config.json`).")
     lines += card_tail(repo_id, metrics, recipe, curve, run, "PPO", "PPO training, evaluation, this directory")

@@ -20,7 +20,7 @@ from .stages import StageRunner
 
 # A learning curve in the report: (caption, image under the run folder).
 Curve = tuple[str, Path]
-# Next to a shipped model's evaluation under another crowd: the digest of the files it was made from.
+# Next to a learned policy's evaluation: the digest of the files it was made from.
 POLICY_DIGEST = "policy.sha256"
 
 
@@ -70,12 +70,12 @@ class Evaluator:
         if ev.shipped and trained:
             # A shipped model may have been replaced since its last evaluation (under a minute): always run.
             done = False
-        elif ev.shipped:  # the other crowds (three times as long): run again when the model's files changed
+        elif ev.policy is not None:  # run again when the model's files changed (another checkpoint chosen)
             done = done and digest.exists() and digest.read_text() == policy_digest(ev.policy)
 
         def run() -> None:
             eval_main(argv[1:])
-            if ev.shipped and not trained:
+            if ev.policy is not None:
                 digest.write_text(policy_digest(ev.policy))
 
         return self.runner.run(eval_stage(task, ev.name, crowd), argv, done, run)

@@ -66,6 +66,14 @@ class RunPaths:
     def finetune_dir(self, task: str, h: int, seed: int, stage: int = 1) -> Path:
         return self.root / "finetune" / (f"{SHORT[task]}_h{h}_s{seed}" + ("" if stage == 1 else f"_stage{stage}"))
 
+    def select_dir(self, task: str, h: int, seed: int) -> Path:
+        """The checkpoint choice of a PDPO policy (``--ft_select_top``): each candidate's
+        validation metrics and ``selected.json``."""
+        return self.root / "select" / f"{SHORT[task]}_h{h}_s{seed}"
+
+    def selected_file(self, task: str, h: int, seed: int) -> Path:
+        return self.select_dir(task, h, seed) / "selected.json"
+
     def crowdnavpp_dir(self, task: str, seed: int) -> Path:
         return self.root / "crowdnavpp" / f"{SHORT[task]}_s{seed}"
 
@@ -90,6 +98,10 @@ def pretrain_stage(task: str, h: int, seed: int) -> str:
 
 def finetune_stage(task: str, h: int, seed: int, stage: int) -> str:
     return f"finetune{'' if stage == 1 else stage} {SHORT[task]} H={h} seed={seed}"
+
+
+def select_stage(task: str, h: int, seed: int) -> str:
+    return f"select {SHORT[task]} H={h} seed={seed}"
 
 
 def crowdnavpp_stage(task: str, seed: int) -> str:

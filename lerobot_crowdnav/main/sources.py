@@ -134,6 +134,8 @@ class TrainedFromScratch(Source):
             for h in c.horizons:
                 pretrain = t.pretrain(task, h, seed)
                 trained[h, seed] = (pretrain, [t.finetune(task, h, seed, n) for n in t.ft_stages][-1])
+                if c.ft_select_top:
+                    t.select(task, h, seed)
             if c.crowdnavpp_env_steps:
                 crowdnavpp[seed] = t.train_crowdnavpp(task, seed)
         rows = []

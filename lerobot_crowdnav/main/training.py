@@ -16,16 +16,34 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from ..checkpoint_files import (FINETUNE_CONFIG, PRETRAINED_MODEL, TRAIN_CONFIG, TRAIN_PPO_CONFIG, TRAINING_STATE,
-                                TRAINING_STEP)
+from .. import fault
+from ..checkpoint_files import (BEST_INFO, FINETUNE_CONFIG, PRETRAINED_MODEL, TRAIN_CONFIG, TRAIN_PPO_CONFIG,
+                                TRAINING_STATE, TRAINING_STEP, WEIGHTS)
 from ..cli import machine_description
 from ..evaluation.report import Stage
 from ..sim.config import PPO_STAGE2_ENV_SEED
 from .config import MainConfig
 from .paths import (SHORT, RunPaths, collect_stage, crowdnavpp_stage, eval_stage, finetune_stage, pretrain_stage,
-                    push_dataset_stage, push_policy_stage)
+                    push_dataset_stage, push_policy_stage, select_stage)
 from .rows import Evaluation
 from .stages import StageRunner
+
+
+def select_candidates(run: Path, k: int) -> list[tuple[int, float, Path]]:
+    """The ``k`` checkpoints of a fine-tuning run with the best validation readings (ties: the
+    earlier), as (env steps, reading, pretrained_model dir): the numbered checkpoints saved where a
+    reading was taken, and ``best`` (the trainer's choice, wherever it was saved)."""
+    readings = {}
+    for line in (run / "progress.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if "val/success_rate" in record:  # a resumed run logs a reading again: the same value
+            readings[record["env_steps"]] = record["val/success_rate"]
+    ckpts = run / "checkpoints"
+    found = {int(d.name): d / PRETRAINED_MODEL for d in ckpts.iterdir()
+             if d.name.isdigit() and int(d.name) in readings and (d / PRETRAINED_MODEL).is_dir()}
+    best = json.loads((ckpts / "best" / BEST_INFO).read_text())["env_steps"]
+    found.setdefault(best, ckpts / "best" / PRETRAINED_MODEL)
+    return [(s, readings[s], found[s]) for s in sorted(found, key=lambda s: (-readings[s], s))[:k]]
 
 
 class Training:
@@ -149,6 +167,34 @@ class Training:
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         return self.runner.run(finetune_stage(task, h, seed, stage), argv, done, lambda: finetune_main(argv[1:] + resume))
 
+    def select(self, task: str, h: int, seed: int) -> Stage:
+        """The policy's checkpoint, chosen on the validation seeds (``--ft_select_top``): the last
+        stage's best-read checkpoints each on ``ft_select_episodes`` episodes, the best of them
+        (ties: the earlier) written to ``selected.json``. Each candidate's evaluation resumes alone."""
+        from ..evaluation.eval import main as eval_main
+
+        c = self.cfg
+        out = self.paths.select_dir(task, h, seed)
+        flags = [*self._env_flags(task), f"--eval.n_episodes={c.ft_select_episodes}", "--eval.split=val",
+                 f"--eval.batch_size={min(256, c.ft_select_episodes)}", "--overwrite=true",
+                 *([f"--policy.device={self.device}"] if self.device else [])]
+        argv = ["lerobot-crowdnav-eval", "--policy.path=<each candidate>", *flags, f"--output_dir={out}/<env steps>"]
+
+        def run() -> None:
+            results = []
+            for steps, reading, path in select_candidates(self.paths.finetune_dir(task, h, seed, self.ft_stages[-1]),
+                                                          c.ft_select_top):
+                metrics = out / f"{steps:09d}" / "metrics.json"
+                if not metrics.exists():
+                    eval_main([f"--policy.path={path}", *flags, f"--output_dir={metrics.parent}"])
+                results.append({"env_steps": steps, "reading": reading, "policy": str(path),
+                                "val_success_rate": json.loads(metrics.read_text())["sr"]})
+            chosen = max(results, key=lambda r: (r["val_success_rate"], -r["env_steps"]))
+            fault.write_text(self.paths.selected_file(task, h, seed), json.dumps(
+                {"episodes": c.ft_select_episodes, "split": "val", "chosen": chosen, "candidates": results}, indent=2))
+
+        return self.runner.run(select_stage(task, h, seed), argv, self.paths.selected_file(task, h, seed).exists(), run)
+
     def train_crowdnavpp(self, task: str, seed: int) -> Stage:
         """CrowdNav++ from scratch by PPO (the reference's settings are the CLI's defaults)."""
         from ..rl.train_ppo import main as train_ppo_main
@@ -173,10 +219,11 @@ class Training:
 
     def finetuned(self, task: str, h: int, seed: int, pretrain: Stage | None = None,
                   finetune: Stage | None = None) -> Evaluation:
-        """The policy's final diffusion-PPO stage's ``best`` checkpoint."""
-        out = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
-        return Evaluation(f"pdpo_ft_h{h}_s{seed}", out / "checkpoints" / "best" / PRETRAINED_MODEL, h, seed,
-                          pretrain=pretrain, finetune=finetune)
+        """The policy: its final diffusion-PPO stage's ``best`` checkpoint, or the one ``select`` chose."""
+        path = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1]) / "checkpoints" / "best" / PRETRAINED_MODEL
+        if self.cfg.ft_select_top:
+            path = Path(json.loads(self.paths.selected_file(task, h, seed).read_text())["chosen"]["policy"])
+        return Evaluation(f"pdpo_ft_h{h}_s{seed}", path, h, seed, pretrain=pretrain, finetune=finetune)
 
     def crowdnavpp(self, task: str, seed: int, stage: Stage | None = None) -> Evaluation:
         return Evaluation(f"crowdnavpp_s{seed}", self.paths.crowdnavpp_dir(task, seed) / "checkpoints" / "best" / PRETRAINED_MODEL,
@@ -227,15 +274,31 @@ class Training:
             self._push_policy(task, self.finetuned(task, h, seed), f"pdpo_{short}_h{h}",
                               functools.partial(self.finetune_curve, task, h, seed),
                               [collect_stage(task), pretrain_stage(task, h, seed),
-                               *(finetune_stage(task, h, seed, n) for n in self.ft_stages)])
+                               *(finetune_stage(task, h, seed, n) for n in self.ft_stages),
+                               *([select_stage(task, h, seed)] if self.cfg.ft_select_top else [])],
+                              self.selection_line(task, h, seed))
         if self.cfg.crowdnavpp_env_steps:
             self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}",
                               lambda: self.paths.crowdnavpp_dir(task, seed) / "training_curves.png",
                               [crowdnavpp_stage(task, seed)])
 
-    def _push_policy(self, task: str, ev: Evaluation, name: str, curve: Callable[[], Path], stages: list[str]) -> None:
+    def selection_line(self, task: str, h: int, seed: int) -> str | None:
+        """The card's sentence on how ``select`` chose the checkpoint (None without a selection)."""
+        if not self.cfg.ft_select_top:
+            return None
+        sel = json.loads(self.paths.selected_file(task, h, seed).read_text())
+        chosen = sel["chosen"]
+        others = "".join(f"; {100 * r['val_success_rate']:.1f} % at {r['env_steps']:,}" for r in sel["candidates"] if r != chosen)
+        return (f"- Checkpoint: the one at {chosen['env_steps']:,} env steps of the last fine-tuning stage, chosen among "
+                f"its {len(sel['candidates'])} checkpoints with the best validation readings by {sel['episodes']:,} "
+                f"validation episodes each ({100 * chosen['val_success_rate']:.1f} %{others}).")
+
+    def _push_policy(self, task: str, ev: Evaluation, name: str, curve: Callable[[], Path], stages: list[str],
+                     checkpoint: str | None = None) -> None:
         """``<hub>/models/<org>/<name>``: the checkpoint with its card (test metrics, the learning
-        curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it)."""
+        curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it, and
+        ``checkpoint``: how it was chosen, when not the run's ``best``). Pushed again when the
+        checkpoint's weights differ from the pushed ones."""
         from ..data.hub import push_policy_to_dir
 
         hub, repo = self.paths.hub, f"{self.cfg.hub_org}/{name}"
@@ -244,11 +307,14 @@ class Training:
                 f"--repo_id={repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
         times = self.runner.wall_times()
         recipe = {"command": self.command, "machine": machine_description(),
-                  "wall_time_s": {n: times[n] for n in [*stages, eval_stage(task, ev.name)] if n in times}}
+                  "wall_time_s": {n: times[n] for n in [*stages, eval_stage(task, ev.name)] if n in times},
+                  **({"checkpoint": checkpoint} if checkpoint else {})}
 
         def run() -> None:
             path = curve()
             push_policy_to_dir(ev.policy, repo, hub, True, metrics, path if path.exists() else None, recipe)
 
-        done = (hub / "models" / repo).exists() and not self.cfg.rerun_eval
+        pushed = hub / "models" / repo / WEIGHTS
+        done = (pushed.exists() and pushed.read_bytes() == (ev.policy / WEIGHTS).read_bytes()
+                and not self.cfg.rerun_eval)
         self.runner.run(push_policy_stage(task, name), argv, done, run)
