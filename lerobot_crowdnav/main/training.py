@@ -18,7 +18,7 @@ from pathlib import Path
 
 from .. import fault
 from ..checkpoint_files import (BEST_INFO, FINETUNE_CONFIG, PRETRAINED_MODEL, TRAIN_CONFIG, TRAIN_PPO_CONFIG,
-                                TRAINING_STATE, TRAINING_STEP, WEIGHTS)
+                                TRAINING_STATE, TRAINING_STEP)
 from ..cli import machine_description
 from ..evaluation.report import Stage
 from ..sim.config import PPO_STAGE2_ENV_SEED
@@ -297,8 +297,8 @@ class Training:
                      checkpoint: str | None = None) -> None:
         """``<hub>/models/<org>/<name>``: the checkpoint with its card (test metrics, the learning
         curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it, and
-        ``checkpoint``: how it was chosen, when not the run's ``best``). Pushed again when the
-        checkpoint's weights differ from the pushed ones."""
+        ``checkpoint``: how it was chosen, when not the run's ``best``). Written on every run (under
+        a second), so that the card follows the latest evaluation and checkpoint choice."""
         from ..data.hub import push_policy_to_dir
 
         hub, repo = self.paths.hub, f"{self.cfg.hub_org}/{name}"
@@ -314,7 +314,4 @@ class Training:
             path = curve()
             push_policy_to_dir(ev.policy, repo, hub, True, metrics, path if path.exists() else None, recipe)
 
-        pushed = hub / "models" / repo / WEIGHTS
-        done = (pushed.exists() and pushed.read_bytes() == (ev.policy / WEIGHTS).read_bytes()
-                and not self.cfg.rerun_eval)
-        self.runner.run(push_policy_stage(task, name), argv, done, run)
+        self.runner.run(push_policy_stage(task, name), argv, False, run)
