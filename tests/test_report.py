@@ -210,6 +210,25 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
 
 
+def test_provenance_names_the_checkpoint_a_row_was_evaluated_from(tmp_path):
+    """The trainer's ``best`` (with best.json) or a numbered checkpoint the main job chose."""
+    from lerobot_crowdnav.evaluation.report import Evaluated, Stage, _provenance
+
+    best = tmp_path / "checkpoints" / "best" / "pretrained_model"
+    chosen = tmp_path / "checkpoints" / "001200128" / "pretrained_model"
+    for path in (best, chosen):
+        path.mkdir(parents=True)
+    (best.parent / "best.json").write_text(json.dumps({"env_steps": 2002944, "val/success_rate": 0.75}))
+    stages = dict(evaluate=Stage("eval", ["lerobot-crowdnav-eval"]), pretrain=Stage("pretrain", ["lerobot-train"]),
+                  finetune=Stage("finetune", ["lerobot-crowdnav-finetune"]))
+
+    def lines(checkpoint):
+        return _provenance(Evaluated("pdpo", tmp_path, checkpoint=checkpoint, **stages), "PDPO", lambda st: st.argv[0])
+
+    assert lines(best)[-1].endswith("checkpoint `best` = 2,002,944 env steps (validation SR 75 %)")
+    assert lines(chosen)[-1].endswith("checkpoint at 1,200,128 env steps, chosen on the validation seeds (the run's select stage)")
+
+
 def test_select_candidates_are_the_best_read_saved_checkpoints(tmp_path):
     """Readings without a saved checkpoint are not candidates, ``best`` is one wherever it was
     saved, ties go to the earlier checkpoint, and a reading logged twice (a resumed run) counts once."""

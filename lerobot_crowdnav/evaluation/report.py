@@ -204,8 +204,8 @@ class Stage:
 class Evaluated:
     """One evaluation in a table row: its ``eval_dir`` (metrics.json, videos/) and the stages that
     made it. A built-in policy has no checkpoint; one trained by the run names its pretraining
-    stage and, fine-tuned (checkpoint ``best``, with ``best.json`` beside it), its fine-tuning
-    stage; a ``shipped`` model directory's card says how it was made."""
+    stage and, fine-tuned (checkpoint ``best``, with ``best.json`` beside it, or a numbered one the
+    main job chose), its fine-tuning stage; a ``shipped`` model directory's card says how it was made."""
 
     name: str
     eval_dir: Path
@@ -296,14 +296,20 @@ def _provenance(ev: Evaluated, label: str, cmd) -> list[str]:
         notes.append(f"  - shipped model `{ev.checkpoint}`: its README.md names the recipe and the command that made it")
     elif ev.checkpoint is not None and ev.finetune is None:
         notes.append(f"  - pretrained by `{cmd(ev.pretrain)}` (checkpoint `last`)")
-    elif ev.checkpoint is not None:  # PPO's `best`: fine-tuned after pretraining, or trained from scratch
-        best = json.loads((ev.checkpoint.parent / BEST_INFO).read_text())
+    elif ev.checkpoint is not None:  # fine-tuned after pretraining, or trained from scratch
         start = "pretrained" if ev.pretrain is not None else "initial"
         if ev.pretrain is not None:
             notes.append(f"  - pretrained by `{cmd(ev.pretrain)}`")
-        notes.append(f"  - {'fine-tuned' if ev.pretrain is not None else 'trained from scratch'} by `{cmd(ev.finetune)}`; "
-                     f"checkpoint `best` = {best['env_steps']:,} env steps (validation SR {100 * best['val/success_rate']:.0f} %)"
-                     + (f": no validation beat the {start} weights, so they are the best" if best["env_steps"] == 0 else ""))
+        made = f"  - {'fine-tuned' if ev.pretrain is not None else 'trained from scratch'} by `{cmd(ev.finetune)}`; "
+        info = ev.checkpoint.parent / BEST_INFO
+        if info.exists():  # PPO's `best`
+            best = json.loads(info.read_text())
+            notes.append(made + f"checkpoint `best` = {best['env_steps']:,} env steps (validation SR "
+                         f"{100 * best['val/success_rate']:.0f} %)"
+                         + (f": no validation beat the {start} weights, so they are the best" if best["env_steps"] == 0 else ""))
+        else:  # a numbered checkpoint: the main job's choice on the validation seeds (--ft_select_top)
+            notes.append(made + f"checkpoint at {int(ev.checkpoint.parent.name):,} env steps, chosen on the validation "
+                         "seeds (the run's select stage)")
     return notes
 
 
