@@ -57,8 +57,9 @@ class ExplorationConfig:
     policy: PolicyPaths = field(default_factory=lambda: PolicyPaths([]))
     # Validation episodes (the first n val seeds), run as one batch.
     episodes: int = 200
-    # Steps measured per episode, and the first ones left out (the deviation starts at 0).
+    # Steps measured per episode.
     steps: int = 20
+    # The first steps left out of the ratio (the deviation starts at 0).
     warmup: int = 5
     # Std floor of the exploring rollout's denoising steps (--ppo.min_sampling_denoising_std).
     min_sampling_denoising_std: float = 0.1

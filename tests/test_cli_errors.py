@@ -1,5 +1,5 @@
 """Every entry point answers a malformed value with one ``error: ...`` line and no traceback (draccus'
-decoder used to end in two chained tracebacks). The cases cover every console script, every module
+decoder used to end in two chained tracebacks), and its ``--help`` explains every option. The cases cover every console script, every module
 run with ``python -m`` and every script of scripts/ and datasets_scripts/;
 ``test_every_entry_point_has_a_case`` fails when a new one has none. Parsing fails before any
 work starts, so each case only imports its command."""
@@ -7,6 +7,7 @@ work starts, so each case only imports its command."""
 from __future__ import annotations
 
 import importlib
+import re
 import runpy
 import sys
 import tomllib
@@ -101,3 +102,32 @@ def test_a_bad_value_of_a_path_setting_is_one_error_line(entry, monkeypatch, cap
         run(entry, [arg], monkeypatch)
     assert exc.value.code == f"error: {expected}"
     assert "Traceback" not in capsys.readouterr().err
+
+
+def undocumented_options(help_text: str) -> list[str]:
+    """The options of an argparse/draccus ``--help`` text that have no help text: nothing after the
+    option on its line and no indented continuation on the next (draccus takes a field's help from
+    the comment right above it, so a field under another field's comment has none)."""
+    lines = help_text.splitlines()
+    bad = []
+    for line, after in zip(lines, [*lines[1:], ""]):
+        m = re.match(r"^  (--[\w.\-]+)(?: \S+)?(?:\s{2,}(?P<help>.*))?$", line)
+        if m and m.group(1) not in ("--help", "--config_path") and not (m.group("help") or "").strip() \
+                and not re.match(r"^ {20,}\S", after):
+            bad.append(m.group(1))
+    return bad
+
+
+def test_undocumented_options_are_found():
+    text = "options:\n  --a int               Its help.\n  --b_long_name list[int]\n                        Wrapped help.\n" \
+           "  --c str               \n  --d float\n\nGroup:\n"
+    assert undocumented_options(text) == ["--c", "--d"]
+
+
+@pytest.mark.parametrize("entry", sorted(DRACCUS) + sorted(ARGPARSE) + sorted(OTHER))
+def test_help_explains_every_option(entry, monkeypatch, capsys):
+    with pytest.raises(SystemExit) as exc:
+        run(entry, ["--help"], monkeypatch)
+    assert exc.value.code in (0, None)
+    text = capsys.readouterr().out
+    assert "--" in text and undocumented_options(text) == []

@@ -59,8 +59,9 @@ class DaggerConfig:
     horizon: int | None = None
     # Environments stepped together.
     batch_size: int = 64
-    # Torch device of the policy, and the seed of its sampling noise.
+    # Torch device of the policy.
     device: str = "cpu"
+    # Seed of the policy's sampling noise.
     seed: int = 0
 
     def validate(self) -> None:

@@ -96,6 +96,7 @@ class BaselinesConfig:
     models: Path | None = SHIPPED_MODELS
     # generalization: the benchmarks (CrowdNav-v0, BoundedCrowdNav-v0) and the simulator preset.
     generalization_tasks: list[str] = field(default_factory=lambda: ["BoundedCrowdNav-v0", "CrowdNav-v0"])
+    # generalization: the simulator preset (paper | crowdnavpp).
     generalization_preset: str = "paper"
     # generalization: the crowd settings (keys of sim.config.CROWDS; the first is the reference
     # of the "SR change" column: the crowd the policies were trained in).

@@ -266,8 +266,9 @@ class TablesConfig:
     baselines: Path | None = None
     # Only report the docs whose tables differ from docs/data/ (exit 1 if any), rewrite nothing.
     check: bool = False
-    # The repository (README.md, docs/) and the data directory, relative to it.
+    # The repository (README.md, docs/).
     root: Path = ROOT
+    # The data directory, relative to the repository.
     data: Path = Path("docs/data")
 
 

@@ -17,6 +17,7 @@ SHIPPED_MODELS = Path(__file__).resolve().parents[2] / "models" / "lerobot-crowd
 class MainConfig:
     # Run name: everything goes to <output_root>/<run>/.
     run: str = "main"
+    # Folder of the runs (<output_root>/<run>/).
     output_root: Path = Path("outputs")
     # Trained models to evaluate instead of training: a directory of hub-format model directories
     # named pdpo_<task>_h<H> and crowdnavpp_<task> (<task> = bounded | original). The job then
@@ -30,24 +31,28 @@ class MainConfig:
     preset: str = "paper"
     # ORCA demonstrations per task, successful episodes (paper: 3,000).
     demos: int = 300
-    # Pretraining steps of lerobot-train at bc_batch_size; bc_epochs > 0 replaces it by that many
-    # epochs over the demonstrations (paper: 200 epochs at batch 128).
+    # Pretraining steps of lerobot-train at bc_batch_size (see bc_epochs).
     bc_steps: int = 2000
+    # > 0: pretrain for this many epochs over the demonstrations instead of bc_steps (paper: 200).
     bc_epochs: float = 0.0
+    # lerobot-train batch size (paper: 128).
     bc_batch_size: int = 128
     # lerobot-train data-loader workers: with the plugin's fast loader, 0 is fastest on 2 cores.
     bc_num_workers: int = 0
     # Chunk horizons: 5 = PDPO, 1 = the "w/o action chunk" ablation ([] with a CrowdNav++ budget:
     # no PDPO, no demonstrations).
     horizons: list[int] = field(default_factory=lambda: [5, 1])
-    # Diffusion-PPO budget per policy in env steps (paper: about 12 M), envs per process, rollout
-    # length, validation episodes and interval (env steps).
+    # Diffusion-PPO budget per policy in env steps (paper: about 12 M).
     ft_env_steps: int = 16384
+    # Diffusion PPO: envs per process.
     ft_num_envs: int = 32
+    # Diffusion PPO: rollout length per env and iteration.
     ft_n_steps: int = 64
     # Minibatch in env steps, each with its 10 denoising transitions (paper: 500).
     ft_batch_size: int = 500
+    # Diffusion PPO: validation episodes per reading (the first validation seeds).
     ft_val_episodes: int = 20
+    # Diffusion PPO: a validation reading every this many env steps.
     ft_val_freq: int = 4096
     # DAgger rounds in pretraining (lerobot_crowdnav.data.dagger; [] = plain behaviour cloning, the
     # paper): at each of these lerobot-train steps (below the BC budget) the policy trained so far
@@ -55,10 +60,11 @@ class MainConfig:
     # visits with its chunk from there, and lerobot-train resumes on the aggregate (each policy
     # aggregates into its own copy of the demonstrations, datasets/<task>_h<H>_s<seed>_dagger).
     bc_dagger_at: list[int] = field(default_factory=list)
+    # Learner episodes per DAgger round.
     bc_dagger_episodes: int = 500
-    # Further flags of every lerobot-train run (e.g. ["--policy.noise_draws=4"]) and of every
-    # lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]): a recipe's own settings.
+    # Further flags of every lerobot-train run (e.g. ["--policy.noise_draws=4"]): a recipe's own settings.
     bc_args: list[str] = field(default_factory=list)
+    # Further flags of every lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]).
     ft_args: list[str] = field(default_factory=list)
     # A second diffusion-PPO stage per policy (0: none): it continues from the first stage's `best`
     # checkpoint (critic included) for ft2_env_steps env steps with the first stage's flags, then
@@ -66,6 +72,7 @@ class MainConfig:
     # encoder once the cheap frozen-encoder stage has plateaued (docs/recipes.md). Its training
     # episodes and sampling noise come from seeds of their own (seed + 1, env seed 520,000,000).
     ft2_env_steps: int = 0
+    # Flags of the second stage only, after ft_args (later flags win).
     ft2_args: list[str] = field(default_factory=list)
     # Which checkpoint of the last diffusion-PPO stage is the policy. 0: the trainer's `best`, the
     # best ft_val_episodes-episode validation reading (the paper's; 100 episodes read +-9 points, too
@@ -73,19 +80,23 @@ class MainConfig:
     # (ties: the earlier) each run again on the first ft_select_episodes validation seeds, and the
     # best of those (ties: the earlier) is the policy; the test seeds never take part.
     ft_select_top: int = 0
+    # Validation episodes per candidate checkpoint (with ft_select_top > 0).
     ft_select_episodes: int = 1000
     # The CrowdNav++ (Const. Vel.) baseline: PPO env steps per task of CrowdNav++'s network trained
     # from scratch by lerobot-crowdnav-train-ppo with the reference's PPO settings (reference: 10 M;
-    # docs/crowdnavpp.md); 0 = no CrowdNav++ row. Further flags of that run (e.g. "--val.freq=...").
+    # docs/crowdnavpp.md); 0 = no CrowdNav++ row.
     crowdnavpp_env_steps: int = 0
+    # Further flags of that run (e.g. ["--val.freq=200000"]).
     crowdnavpp_args: list[str] = field(default_factory=list)
     # Training seeds (pretraining and fine-tuning); tables show mean +- std over them.
     seeds: list[int] = field(default_factory=lambda: [1000])
     # Test episodes per method, the first seeds of the test split (paper: 500).
     test_episodes: int = 500
-    # Figures: the test episode drawn, its steps and the chunks sampled per step.
+    # Figures: the test episode drawn (index into the test seeds).
     figure_episode: int = 0
+    # Figures: the steps of that episode drawn.
     figure_steps: list[int] = field(default_factory=lambda: [0, 4, 8, 12, 16])
+    # Figures: action chunks sampled per drawn step.
     figure_samples: int = 32
     # Crowds every row is evaluated in on the test seeds (keys of sim.config.CROWDS): orca, the
     # crowd every policy is trained in (the results tables), and crowds they never saw,

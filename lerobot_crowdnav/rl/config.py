@@ -22,12 +22,15 @@ class PPOConfig:
     batch_size: int = 500
     # Passes over the iteration's data.
     update_epochs: int = 5
+    # Learning rate of the actor (AdamW).
     actor_lr: float = 1e-4
+    # Learning rate of the critic (AdamW).
     critic_lr: float = 1e-3
     # AdamW weight decay of both optimizers (DPPO: 0).
     weight_decay: float = 0.0
-    # Discount and GAE lambda on environment steps.
+    # Discount on environment steps.
     gamma: float = 0.99
+    # GAE lambda on environment steps.
     gae_lambda: float = 0.95
     # PPO clip of the probability ratio (of the final denoising step for a diffusion policy).
     clip_ploss_coef: float = 0.01
@@ -37,6 +40,7 @@ class PPOConfig:
     target_kl: float = 1.0
     # Scale rewards by a running std of the discounted return, clipped to +-reward_clip.
     reward_scale_running: bool = True
+    # The clip of the scaled rewards.
     reward_clip: float = 10.0
     # First iterations train only the critic (it starts fresh).
     n_critic_warmup_itr: int = 2
@@ -97,6 +101,7 @@ class DiffusionPPOConfig(PPOConfig):
     # Per-denoising-step PPO clip: clip_ploss_coef_base at the noisiest fine-tuned step up to
     # clip_ploss_coef at the final one, exponential with rate clip_ploss_coef_rate.
     clip_ploss_coef_base: float = 0.001
+    # The rate of that exponential.
     clip_ploss_coef_rate: float = 3.0
     # Std floor of the rollout's denoising steps (exploration noise at every step, the last included).
     min_sampling_denoising_std: float = 0.1

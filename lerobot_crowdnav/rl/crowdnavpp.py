@@ -38,20 +38,35 @@ class CrowdNavPPPPOConfig(PPOConfig):
     no KL stop and no critic warm-up (the trunk is shared). Class defaults, not a factory: draccus
     builds ``--ppo.*`` from the class's defaults."""
 
+    # Steps each env takes per iteration (the reference: num_steps 30).
     n_steps: int = 30
+    # Env steps per minibatch: batch_size // n_steps whole env sequences (the reference: 16 envs / 2 minibatches).
     batch_size: int = 240
+    # Passes over the iteration's data (the reference: ppo_epoch 5).
     update_epochs: int = 5
+    # Adam learning rate of the whole network (the reference: 4e-5).
     actor_lr: float = 4e-5
-    critic_lr: float = 4e-5  # unused: one parameter group ("actor")
+    # Unused: the network is one parameter group ("actor").
+    critic_lr: float = 4e-5
+    # PPO clip of the probability ratio (the reference: 0.2).
     clip_ploss_coef: float = 0.2
+    # Value-loss coefficient (the reference: 0.5).
     vf_coef: float = 0.5
+    # KL early stop (0: never, as the reference).
     target_kl: float = 0.0
+    # Rewards as they come (the reference scales none).
     reward_scale_running: bool = False
+    # No critic-only iterations (the trunk is shared).
     n_critic_warmup_itr: int = 0
+    # Gradient-norm clip (the reference: 0.5).
     max_grad_norm: float = 0.5
+    # Adam's epsilon (the reference: 1e-5).
     adam_eps: float = 1e-5
+    # Clipped value loss (the reference: use_clipped_value_loss).
     clip_vloss: bool = True
+    # Advantages normalized over the whole rollout (the reference), not per minibatch.
     norm_adv: str = "rollout"
+    # Timeouts end the return like other terminations (the reference).
     bootstrap_timeouts: bool = False
 
 

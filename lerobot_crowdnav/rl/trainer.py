@@ -56,6 +56,7 @@ class WandBConfig:
     enable: bool = False
     # offline (no account or network needed; `wandb sync` later), online or disabled.
     mode: str = "offline"
+    # W&B project name.
     project: str = "lerobot-crowdnav"
 
 
