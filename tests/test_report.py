@@ -248,6 +248,30 @@ def test_select_candidates_are_the_best_read_saved_checkpoints(tmp_path):
     assert [s for s, _, _ in select_candidates(tmp_path, 10)] == [400, 100, 300, 500, 600]
 
 
+def test_the_checkpoint_choice_is_made_again_when_its_settings_change(tiny_main, tmp_path):
+    """selected.json records what it was made from (top, episodes, the stage's env steps): the
+    same settings skip the stage, others choose again, reusing the candidates' evaluations."""
+    shutil.copytree(tiny_main / "tiny", tmp_path / "tiny", symlinks=True)
+
+    def select(*args: str):
+        cfg = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml",
+                            args=[f"--output_root={tmp_path}", *args])
+        training = Training(cfg)
+        stage = training.select("BoundedCrowdNav-v0", 5, 1000)
+        return stage, json.loads(training.paths.selected_file("BoundedCrowdNav-v0", 5, 1000).read_text())
+
+    stage, before = select()
+    assert stage.wall_time_s is None and (before["top"], before["episodes"]) == (2, 2)
+    evaluated = {p: p.stat().st_mtime_ns for p in (tmp_path / "tiny" / "select").rglob("metrics.json")}
+    stage, after = select("--ft_select_top=1")
+    assert stage.wall_time_s is not None and after["top"] == 1
+    def scores(rows):
+        return [(r["env_steps"], r["reading"], r["val_success_rate"]) for r in rows]
+
+    assert scores(after["candidates"]) == scores(before["candidates"][:1]) == scores([after["chosen"]])
+    assert {p: p.stat().st_mtime_ns for p in evaluated} == evaluated  # nothing evaluated again
+
+
 def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path):
     """The default mode: model directories in, tables out. A shipped copy of a trained policy gets
     exactly the metrics its training run measured; a missing model is named, not a crash."""

@@ -170,11 +170,18 @@ class Training:
     def select(self, task: str, h: int, seed: int) -> Stage:
         """The policy's checkpoint, chosen on the validation seeds (``--ft_select_top``): the last
         stage's best-read checkpoints each on ``ft_select_episodes`` episodes, the best of them
-        (ties: the earlier) written to ``selected.json``. Each candidate's evaluation resumes alone."""
+        (ties: the earlier) written to ``selected.json``. Each candidate's evaluation resumes alone;
+        the choice is made again when the stage ran further or the selection settings changed."""
         from ..evaluation.eval import main as eval_main
 
         c = self.cfg
         out = self.paths.select_dir(task, h, seed)
+        run_dir = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
+        last = run_dir / "checkpoints" / "last" / PRETRAINED_MODEL / FINETUNE_CONFIG
+        made_from = {"top": c.ft_select_top, "episodes": c.ft_select_episodes,
+                     "env_steps_done": json.loads(last.read_text())["env_steps_done"]}
+        selected = self.paths.selected_file(task, h, seed)
+        done = selected.exists() and all(json.loads(selected.read_text()).get(k) == v for k, v in made_from.items())
         flags = [*self._env_flags(task), f"--eval.n_episodes={c.ft_select_episodes}", "--eval.split=val",
                  f"--eval.batch_size={min(256, c.ft_select_episodes)}", "--overwrite=true",
                  *([f"--policy.device={self.device}"] if self.device else [])]
@@ -182,18 +189,17 @@ class Training:
 
         def run() -> None:
             results = []
-            for steps, reading, path in select_candidates(self.paths.finetune_dir(task, h, seed, self.ft_stages[-1]),
-                                                          c.ft_select_top):
+            for steps, reading, path in select_candidates(run_dir, c.ft_select_top):
                 metrics = out / f"{steps:09d}" / "metrics.json"
-                if not metrics.exists():
+                if not metrics.exists() or json.loads(metrics.read_text())["n_episodes"] != c.ft_select_episodes:
                     eval_main([f"--policy.path={path}", *flags, f"--output_dir={metrics.parent}"])
                 results.append({"env_steps": steps, "reading": reading, "policy": str(path),
                                 "val_success_rate": json.loads(metrics.read_text())["sr"]})
             chosen = max(results, key=lambda r: (r["val_success_rate"], -r["env_steps"]))
-            fault.write_text(self.paths.selected_file(task, h, seed), json.dumps(
-                {"episodes": c.ft_select_episodes, "split": "val", "chosen": chosen, "candidates": results}, indent=2))
+            fault.write_text(selected, json.dumps({**made_from, "split": "val", "chosen": chosen, "candidates": results},
+                                                  indent=2))
 
-        return self.runner.run(select_stage(task, h, seed), argv, self.paths.selected_file(task, h, seed).exists(), run)
+        return self.runner.run(select_stage(task, h, seed), argv, done, run)
 
     def train_crowdnavpp(self, task: str, seed: int) -> Stage:
         """CrowdNav++ from scratch by PPO (the reference's settings are the CLI's defaults)."""
