@@ -30,12 +30,12 @@ from pathlib import Path
 
 from ..checkpoint_files import WEIGHTS
 from ..cli import run_cli
+from ..measure.metrics import markdown_header, markdown_row
 from ..sim.config import CROWDS, TASKS, CrowdSimConfig
 from .eval import (EvalConfig, EvalSettings, OrcaPolicyConfig, PretrainedPolicyConfig, RobotPolicyConfig,
                    StraightPolicyConfig, evaluate)
 from .generalization import (CROWD_LABELS, check_crowds, crowd_env, crowds_sentence, generalization_csv,
                              generalization_markdown, read_csv)
-from ..measure.metrics import markdown_header, markdown_row
 from .report import Row, wall_audit
 
 LA, CS = dict(orca_robot="look_ahead"), dict(orca_robot="current_state")

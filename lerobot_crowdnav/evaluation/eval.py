@@ -22,10 +22,10 @@ import numpy as np
 
 from ..checkpoint_files import PRETRAINED_MODEL
 from ..cli import machine_description, run_cli
-from ..sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
-from ..sim.envs import CrowdNavEnv, CrowdNavVectorEnv
 from ..measure.episodes import LearnedPolicy, json_safe, run_episodes
 from ..measure.metrics import compute_metrics, markdown_header, markdown_row
+from ..sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
+from ..sim.envs import CrowdNavEnv, CrowdNavVectorEnv
 
 
 @dataclass

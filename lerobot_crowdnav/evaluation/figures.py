@@ -18,10 +18,10 @@ from pathlib import Path
 
 
 from ..cli import run_cli
-from ..sim.config import SEED_SPLITS, CrowdSimConfig
-from ..sim.envs import CrowdNavEnv
 from ..measure.episodes import LearnedPolicy
 from ..measure.plots import plot_multimodality, plot_storyboard
+from ..sim.config import SEED_SPLITS, CrowdSimConfig
+from ..sim.envs import CrowdNavEnv
 
 
 def record_snapshots(policy_path: str | Path, sim_cfg: CrowdSimConfig, seed: int, steps: list[int],

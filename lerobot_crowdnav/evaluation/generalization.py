@@ -22,8 +22,8 @@ import io
 import math
 from pathlib import Path
 
-from ..sim.config import CROWDS
 from ..measure.metrics import wilson_interval
+from ..sim.config import CROWDS
 
 TRAINED = "orca"  # the crowd every shipped or trained policy was trained in: the reference of "SR change"
 CROWD_LABELS = {"orca": "trained (ORCA)", "reactive_orca": "reactive ORCA", "social_force": "social force",

@@ -20,11 +20,11 @@ from pathlib import Path
 
 from ..checkpoint_files import BEST_INFO, POLICY_CONFIG, WEIGHTS
 from ..cli import machine_description
+from ..measure.metrics import OUTCOMES, goal_in_wall_zone, outcome, wilson_interval
+from ..measure.parameters import parameter_counts
 from ..sim.config import SEED_SPLITS
 from .generalization import (CROWD_LABELS, TRAINED, crowds_sentence, generalization_csv, generalization_markdown,
                              read_csv)
-from ..measure.metrics import OUTCOMES, goal_in_wall_zone, outcome, wilson_interval
-from ..measure.parameters import parameter_counts
 
 # column -> (metrics key, scale, digits, header)
 COLUMNS = {

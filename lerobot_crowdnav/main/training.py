@@ -29,6 +29,12 @@ from .rows import Evaluation
 from .stages import StageRunner
 
 
+def env_steps_done(checkpoint: Path, settings: str = FINETUNE_CONFIG) -> int:
+    """A PPO checkpoint's env steps, from its run settings file (0 when it has none yet)."""
+    path = checkpoint / PRETRAINED_MODEL / settings
+    return json.loads(path.read_text())["env_steps_done"] if path.exists() else 0
+
+
 def select_candidates(run: Path, k: int) -> list[tuple[int, float, Path]]:
     """The ``k`` checkpoints of a fine-tuning run with the best validation readings (ties: the
     earlier), as (env steps, reading, pretrained_model dir): the numbered checkpoints saved where a
@@ -153,8 +159,7 @@ class Training:
         c = self.cfg
         out = self.paths.finetune_dir(task, h, seed, stage)
         steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
-        saved = out / "checkpoints" / "last" / PRETRAINED_MODEL / FINETUNE_CONFIG
-        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= steps
+        done = env_steps_done(out / "checkpoints" / "last") >= steps
         source = (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
                   else self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best") / PRETRAINED_MODEL
         argv = ["lerobot-crowdnav-finetune", f"--policy.path={source}",
@@ -177,9 +182,8 @@ class Training:
         c = self.cfg
         out = self.paths.select_dir(task, h, seed)
         run_dir = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
-        last = run_dir / "checkpoints" / "last" / PRETRAINED_MODEL / FINETUNE_CONFIG
         made_from = {"top": c.ft_select_top, "episodes": c.ft_select_episodes,
-                     "env_steps_done": json.loads(last.read_text())["env_steps_done"]}
+                     "env_steps_done": env_steps_done(run_dir / "checkpoints" / "last")}
         selected = self.paths.selected_file(task, h, seed)
         done = selected.exists() and all(json.loads(selected.read_text()).get(k) == v for k, v in made_from.items())
         flags = [*self._env_flags(task), f"--eval.n_episodes={c.ft_select_episodes}", "--eval.split=val",
@@ -206,9 +210,8 @@ class Training:
         from ..rl.train_ppo import main as train_ppo_main
 
         out = self.paths.crowdnavpp_dir(task, seed)
-        saved = out / "checkpoints" / "last" / PRETRAINED_MODEL / TRAIN_PPO_CONFIG
         c = self.cfg
-        done = saved.exists() and json.loads(saved.read_text())["env_steps_done"] >= c.crowdnavpp_env_steps
+        done = env_steps_done(out / "checkpoints" / "last", TRAIN_PPO_CONFIG) >= c.crowdnavpp_env_steps
         argv = ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp", *self._env_flags(task),
                 "--env.compute_intrusion=false", f"--env_steps={c.crowdnavpp_env_steps}", f"--seed={seed}",
                 f"--output_dir={out}", *c.crowdnavpp_args]
@@ -255,8 +258,7 @@ class Training:
         first = read(self.paths.finetune_dir(task, h, seed))
         if 2 not in self.ft_stages:
             return {label: first}
-        best = self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best" / PRETRAINED_MODEL / FINETUNE_CONFIG
-        start = json.loads(best.read_text())["env_steps_done"]
+        start = env_steps_done(self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best")
         spent = max(r.get("time/wall_s") or 0.0 for r in first)
         second = [{**r, "env_steps": r["env_steps"] + start,
                    "time/wall_s": None if r.get("time/wall_s") is None else r["time/wall_s"] + spent}
