@@ -362,8 +362,9 @@ def _stage_rows(report: str) -> dict[str, str]:
 
 
 def _without_generalization(report: str) -> str:
-    """The report less its first line's wall time, the generalization tables and their stages."""
-    lines = [line for line in report.splitlines()
+    """The report less its wall times (the first line's, and the stages that run every time, such as
+    the policy pushes), the generalization tables and their stages."""
+    lines = [re.sub(r"\| \d+ s \|$", "| ... |", line) for line in report.splitlines()
              if not line.startswith("Machine: ") and not (line.startswith("| eval ") and " crowd=" in line)]
     return re.sub(r"### Generalization: crowds it was not trained in\n.*?\n(?=## )", "", "\n".join(lines), flags=re.S)
 
