@@ -270,3 +270,24 @@ def test_scores_of_another_shape_than_n_parts_are_refused_by_the_update():
     optimizers = {name: torch.optim.Adam(params) for name, params in agent.param_groups().items()}
     with pytest.raises(ValueError, match="scored a decision as 2 parts, not its n_parts=1"):
         update(agent, agent, ro, cfg, optimizers, np.random.default_rng(0), Accelerator(cpu=True), train_actor=True)
+
+
+def test_a_sampling_stream_saved_on_another_device_type_continues_from_a_seed_derived_from_it():
+    """A run moved between a CPU and a GPU machine resumes: CUDA generators save 16 bytes, CPU ones
+    5,056, and neither loads the other's. The same saved state gives the same stream, another one
+    another; a state of this device type continues exactly."""
+    from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
+
+    def loaded(state: dict) -> torch.Tensor:
+        collector = Collector(CrowdNavVectorEnv(2), GaussianActorCritic(2, False), None, torch.Generator().manual_seed(1))
+        collector.reset(seed=0)
+        collector.load_state_dict(state)
+        return torch.rand(8, generator=collector.generator)
+
+    source = Collector(CrowdNavVectorEnv(2), GaussianActorCritic(2, False), None, torch.Generator().manual_seed(7))
+    source.reset(seed=0)
+    state = source.state_dict()
+    assert torch.equal(loaded(state), torch.rand(8, generator=source.generator))
+    cuda_like = {**state, "torch": list(range(16))}
+    assert torch.equal(loaded(cuda_like), loaded(cuda_like))
+    assert not torch.equal(loaded(cuda_like), loaded({**state, "torch": list(range(1, 17))}))

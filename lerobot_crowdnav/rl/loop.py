@@ -102,7 +102,11 @@ class Collector:
     def load_state_dict(self, state: dict) -> None:
         """Env and observations come from ``env.load_state_dict``; this restores the rest."""
         self.obs = self.env.sim.obs.copy()
-        self.generator.set_state(torch.tensor(state["torch"], dtype=torch.uint8))
+        saved = torch.tensor(state["torch"], dtype=torch.uint8)
+        if saved.numel() == self.generator.get_state().numel():
+            self.generator.set_state(saved)
+        else:  # saved on another device type (CPU and CUDA generators differ): a seed derived from it
+            self.generator.manual_seed(int.from_bytes(hashlib.sha256(saved.numpy().tobytes()).digest()[:8], "little"))
         if self.scaler is not None:
             self.scaler.load_state_dict(state["scaler"])
         self.starts = np.asarray(state.get("starts", self.starts), bool)
