@@ -13,6 +13,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from conftest import make_tiny_checkpoint
 from lerobot_crowdnav.data.dagger import ROUND_SEEDS, main as dagger_main, teacher_snippets
 from lerobot_crowdnav.data.dataset import COLLECTION_FILE
+from lerobot_crowdnav.data.hub import policy_card
 from lerobot_crowdnav.sim.config import DAGGER_SEED_BASE, CrowdSimConfig
 from lerobot_crowdnav.sim.engine import HUMAN_COLLISION, RUNNING, SUCCESS, WALL_COLLISION, CrowdSim
 
@@ -116,6 +117,10 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     train_cfg = json.loads((last / "pretrained_model/train_config.json").read_text())
     assert train_cfg["dataset"]["root"] == str(data) and train_cfg["policy"]["velocity_dropout"] == 0.5
     assert Path(rounds[0]["policy"]).parent.name.lstrip("0") == "2"  # the round's learner: the step-2 checkpoint
+    card = str(policy_card(last / "pretrained_model", "org/x"))  # the card says how it was pretrained
+    assert ("; the robot's own velocity (the previous action) hidden from the policy in 50% of the training samples; "
+            f"1 DAgger round aggregated into the demonstrations (2 episodes driven by the policy being trained, "
+            f"{rounds[0]['snippets']:,} of their states labelled") in card
     assert job.pretrain(task, 1, 1000).wall_time_s is None  # complete: skipped
     with pytest.raises(ValueError, match="bc_dagger_at"):
         MainConfig(models=None, bc_dagger_at=[0]).validate()

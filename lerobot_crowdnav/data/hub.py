@@ -236,7 +236,8 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
         f"- Data: `{dataset}`" + (f" ({root})" if (root := (train.get("dataset") or {}).get("root"))
                                   and not Path(root).is_absolute() else "") + ".",
         f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
-        f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}.",
+        f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}"
+        + "".join(f"; {remedy}" for remedy in pretraining_remedies(config, train)) + ".",
     ]
     if finetune:
         ppo = finetune["ppo"]
@@ -267,6 +268,28 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
                          tags=["robotics", "lerobot", "pdpo", "diffusion-policy", "crowd-navigation"],
                          datasets=[dataset] if dataset else None)
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")
+
+
+def pretraining_remedies(config: dict, train: dict) -> list[str]:
+    """What the pretraining did against the copycat shortcut (the policy copying the robot's own
+    velocity, the previous action), from the policy's config and, where the dataset is on this
+    machine, its DAgger rounds (``meta/crowdnav_collection.json``)."""
+    import json
+
+    from .dataset import COLLECTION_FILE
+
+    remedies = []
+    if p := config.get("velocity_dropout"):
+        remedies.append("the robot's own velocity (the previous action) hidden from the policy "
+                        + ("always" if p == 1 else f"in {p:.0%} of the training samples"))
+    if (draws := config.get("noise_draws", 1)) > 1:
+        remedies.append(f"{draws} diffusion-noise draws per sample")
+    collection = Path((train.get("dataset") or {}).get("root") or "") / COLLECTION_FILE
+    if collection.is_file() and (rounds := json.loads(collection.read_text()).get("dagger")):
+        remedies.append(f"{len(rounds)} DAgger round{'s' * (len(rounds) > 1)} aggregated into the demonstrations "
+                        f"({sum(r['learner_episodes'] for r in rounds):,} episodes driven by the policy being trained, "
+                        f"{sum(r['snippets'] for r in rounds):,} of their states labelled with the ORCA demonstrator's chunk)")
+    return remedies
 
 
 # The reference network (Shuijing725/CrowdNav_Prediction_AttnGraph, selfAttn_merge_srnn) holds an
