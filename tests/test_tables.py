@@ -94,6 +94,7 @@ def test_the_command_writes_what_it_reads(tmp_path):
     for doc in DOCS:
         (root / doc).parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(ROOT / doc, root / doc)
+    shutil.copytree(DATA / "plain_bc", root / "docs" / "data" / "plain_bc")  # frozen: no run writes it
     before = {doc: (root / doc).read_text() for doc in DOCS}
 
     tables(TablesConfig(main=run, baselines=base, root=root))
@@ -233,3 +234,30 @@ def test_generalization_tables_come_from_the_report_csv_and_wait_for_it(tmp_path
     assert "| PDPO (H = 5, fine-tuned) | 30.0 ± " in expected["bounded"]  # two seeds: mean ± std, then the interval
     assert " / " in got["generalization-bounded"].splitlines()[2]
     assert tables(TablesConfig(root=root)) == []
+
+
+def test_the_plain_bc_tables_keep_the_policies_shipped_before_whatever_main_run_is_imported(tmp_path):
+    """docs/data/plain_bc is frozen: importing a new `make main` run rewrites the main tables, not
+    the plain-BC ones, which show the frozen files' PDPO rows, relabelled, with their own cells."""
+    from lerobot_crowdnav.evaluation.generalization import read_csv
+
+    root = tmp_path / "repo"
+    for doc in DOCS:
+        (root / doc).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ROOT / doc, root / doc)
+    shutil.copytree(DATA, root / "docs" / "data")
+    before = blocks((root / "docs" / "results.md").read_text())
+    run = tmp_path / "main"
+    shutil.copytree(DATA / "main", run / "tables")
+    retrained = (run / "tables" / "results_bounded.csv").read_text().replace('"PDPO (H = 5, fine-tuned)",1,', '"PDPO (H = 5, fine-tuned)",1,9')
+    (run / "tables" / "results_bounded.csv").write_text(retrained)  # a new SR: 9 before the old digits
+    tables(TablesConfig(main=run, root=root))
+    got = blocks((root / "docs" / "results.md").read_text())
+    assert got["main-bounded"] != before["main-bounded"]
+    assert all(got[name] == before[name] for name in got if name.startswith("plain-bc"))
+    frozen = {r["method"]: r for r in read_csv((DATA / "plain_bc" / "results_bounded.csv").read_text())}
+    sr = float(frozen["PDPO (H = 5, fine-tuned)"]["SR_mean"])
+    assert f"| Bounded | PDPO (H = 5, plain BC, fine-tuned) | {sr:.1f} |" in got["plain-bc"]
+    generalization = got["plain-bc-generalization-bounded"].splitlines()
+    assert [line.split(" | ")[0] for line in generalization[2:]] == \
+        ["| PDPO w/o action chunk (H = 1, plain BC, fine-tuned)", "| PDPO (H = 5, plain BC, fine-tuned)"]

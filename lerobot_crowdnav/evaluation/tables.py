@@ -16,6 +16,10 @@ outside the markers is left alone. Cells are formatted as in the report (``repor
 % with its 95 % Wilson interval, NT in s, ...), ``mean ± std`` where a row averages several seeds.
 tests/test_tables.py fails when a committed table differs from what this writes.
 
+``plain_bc/`` is frozen: ``make main``'s tables of the policies shipped until 2026-11-26, trained by
+the paper's plain-BC recipes (the ``_paper_bc`` configs), kept so the docs can show what the
+crowd-looking pretraining changed; their PDPO rows are relabelled as plain BC.
+
 The generalization tables (``main/generalization_<task>.csv``, from a ``make main`` run with its
 default ``--crowds``) are optional: until their file exists, their block says how to make it
 (:data:`NOT_GENERATED`) and the command names what it skipped.
@@ -161,7 +165,10 @@ def render(block: Block, data: Path) -> str:
         return NOT_GENERATED.format(file=missing[0])
     if block.kind == "generalization":
         (part,) = block.parts
-        return generalization_markdown(read_generalization((data / part.file).read_text()), block.bounded, block.label)
+        rows = read_generalization((data / part.file).read_text())
+        if part.rows is not None:  # those rows, in that order, relabelled
+            rows = [{**r, "method": shown} for label, shown in part.rows.items() for r in rows if r["method"] == label]
+        return generalization_markdown(rows, block.bounded, block.label)
     if block.kind == "results":
         header = [*block.lead, block.label, *(COLUMNS[c][3] for c in block.columns)]
     elif block.kind == "wall_audit":
@@ -209,6 +216,9 @@ def _baseline_blocks(key: str, *, bounded: bool, results: bool = True) -> dict[s
 
 
 _MAIN_ROWS = {"bounded": "main/results_bounded.csv", "original": "main/results_original.csv"}
+# The PDPO rows of the policies shipped until 2026-11-26 (plain_bc/: the paper's plain-BC recipes).
+_PLAIN_BC = {"PDPO w/o action chunk (H = 1, fine-tuned)": "PDPO w/o action chunk (H = 1, plain BC, fine-tuned)",
+             "PDPO (H = 5, fine-tuned)": "PDPO (H = 5, plain BC, fine-tuned)"}
 BLOCKS: dict[str, Block] = {
     # README.md: both benchmarks in one table.
     "main": Block("results", [Part(_MAIN_ROWS["bounded"], first=("Bounded",)),
@@ -228,6 +238,15 @@ BLOCKS: dict[str, Block] = {
     "crowdnavpp-orca-baseline": Block("results", [Part("baselines/crowdnavpp_orca_baseline.csv",
                                                        _same("ORCA current-state"))],
                                       label="policy", columns=BASELINE_COLUMNS[:-1]),
+    # docs/results.md: the policies shipped before, by the paper's plain-BC recipes (frozen data)
+    "plain-bc": Block("results", [Part("plain_bc/results_bounded.csv", _PLAIN_BC, first=("Bounded",)),
+                                  Part("plain_bc/results_original.csv", _PLAIN_BC, first=("original",))],
+                      lead=("benchmark",)),
+    "plain-bc-wall-audit": Block("wall_audit", [Part("plain_bc/wall_audit.csv", _PLAIN_BC)]),
+    "plain-bc-generalization-bounded": Block("generalization", [Part("plain_bc/generalization_bounded.csv", _PLAIN_BC)],
+                                             bounded=True),
+    "plain-bc-generalization-original": Block("generalization",
+                                              [Part("plain_bc/generalization_original.csv", _PLAIN_BC)]),
     # docs/results.md: make main's generalization tables (optional until a run with --crowds made them)
     "generalization-bounded": Block("generalization", [Part("main/generalization_bounded.csv")], optional=True,
                                     bounded=True),
