@@ -160,3 +160,28 @@ def test_an_interrupted_stage_of_the_main_job_tells_how_to_resume_the_main_job()
     assert "stage" not in str(exit_info.value)
     with pytest.raises(SystemExit, match="interrupted: rerun the stage"):  # the depth is back to 0
         run_cli(_NoOptions, stage, [], "rerun the stage")
+
+
+def test_a_stage_killed_without_warning_keeps_its_time_so_far_and_a_rerun_adds_to_it(tmp_path):
+    """The main job's stage wall times (the cards' table) survive a SIGKILL up to one heartbeat:
+    the killed stage's time is on disk, and the rerun that completes it adds its own."""
+    import json
+    import time
+
+    from lerobot_crowdnav.main.stages import StageRunner
+
+    times = tmp_path / "stage_times.json"
+    code = ("import time, sys\nfrom lerobot_crowdnav.main.stages import StageRunner\n"
+            f"StageRunner(sys.argv[1], heartbeat_s=0.1).run('train', ['x'], False, lambda: time.sleep(60))\n")
+    child = subprocess.Popen([sys.executable, "-c", code, str(times)])
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and json.loads(times.read_text() if times.exists() else "{}").get("train", 0) < 0.5:
+        time.sleep(0.05)
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    killed = json.loads(times.read_text())["train"]
+    assert killed >= 0.5
+    StageRunner(times, heartbeat_s=0.1).run("train", ["x"], False, lambda: time.sleep(0.3))
+    total = json.loads(times.read_text())["train"]
+    assert killed + 0.3 <= total < killed + 5
+    assert not list(tmp_path.glob(".*"))  # no temporary file left behind

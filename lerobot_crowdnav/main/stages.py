@@ -4,6 +4,7 @@ unless its output is complete, and its wall time is summed over every invocation
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,10 +15,13 @@ from ..evaluation.report import Stage
 
 class StageRunner:
     """Runs stages and records them: ``stages`` (this invocation's, in order: commands.json and the
-    report's Stages table) and ``times_file`` (``stage_times.json``, every invocation's)."""
+    report's Stages table) and ``times_file`` (``stage_times.json``, every invocation's). A running
+    stage's time is saved every ``heartbeat_s`` seconds too, so a process killed without warning
+    (SIGKILL, a machine handed back) loses at most that much of it from the cards' wall times."""
 
-    def __init__(self, times_file: Path):
+    def __init__(self, times_file: Path, heartbeat_s: float = 60.0):
         self.times_file = Path(times_file)
+        self.heartbeat_s = heartbeat_s
         self.stages: dict[str, Stage] = {}
 
     def run(self, name: str, argv: list[str], done: bool, run: Callable[[], object]) -> Stage:
@@ -27,22 +31,41 @@ class StageRunner:
             stage = Stage(name, argv)
         else:
             print(f"[main] {name}: {' '.join(argv)}", flush=True)
+            before = self.wall_times().get(name, 0.0)
             start = time.perf_counter()
+            stop = threading.Event()
+
+            def heartbeat() -> None:
+                while not stop.wait(self.heartbeat_s):
+                    self._set_wall_time(name, before + time.perf_counter() - start, atomic_point=False)
+
+            beat = threading.Thread(target=heartbeat, name=f"stage time: {name}", daemon=True)
+            beat.start()
             try:
                 run()
             finally:
+                stop.set()
+                beat.join()
                 elapsed = time.perf_counter() - start
-                self._add_wall_time(name, elapsed)
+                self._set_wall_time(name, before + elapsed)
             stage = Stage(name, argv, elapsed)
         self.stages[name] = stage
         return stage
 
     def wall_times(self) -> dict[str, float]:
         """Wall time of each stage summed over every invocation that ran it (a resumed stage's
-        time includes the interrupted attempts, Ctrl-C and SIGTERM included; not SIGKILL)."""
+        time includes the interrupted attempts, a SIGKILLed one up to its last heartbeat)."""
         return json.loads(self.times_file.read_text()) if self.times_file.exists() else {}
 
-    def _add_wall_time(self, name: str, seconds: float) -> None:
+    def _set_wall_time(self, name: str, seconds: float, atomic_point: bool = True) -> None:
+        """Record ``seconds`` as the stage's time so far. The heartbeat's writes (``atomic_point``
+        False) skip the fault-injection point: their number depends on timing, not on the code path."""
         times = self.wall_times()
-        times[name] = times.get(name, 0.0) + seconds
-        fault.write_text(self.times_file, json.dumps(times, indent=2))
+        times[name] = seconds
+        text = json.dumps(times, indent=2)
+        if atomic_point:
+            fault.write_text(self.times_file, text)
+        else:
+            tmp = self.times_file.with_name(f".{self.times_file.name}.heartbeat")
+            tmp.write_text(text)
+            tmp.replace(self.times_file)
