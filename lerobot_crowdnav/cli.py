@@ -89,10 +89,15 @@ def deferred_interrupt(what: str) -> Iterator[Interrupt]:
 
 
 def machine_description() -> str:
+    """The CPU model and its logical cores, for reports, cards and benchmarks; when this process
+    may run on fewer of them (taskset, a container's cpuset), how many: a figure measured on one
+    pinned core says so."""
     model = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
             model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    return f"{model}, {os.cpu_count()} logical cores"
+    total = os.cpu_count()
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else total
+    return f"{model}, {total} logical cores" + (f" ({usable} available to this process)" if usable < total else "")

@@ -144,3 +144,16 @@ def test_a_model_card_names_no_folder_of_the_machine_that_made_it(tmp_path):
     tail = "\n".join(card_tail("org/x", None, {"command": "lerobot-crowdnav-main --output_root=/data/r"}, None, None,
                                "PPO", "everything"))
     assert "/data/r" not in tail and f"--seed={SEED_SPLITS['test'][0]}" in tail
+
+
+def test_the_machine_line_says_when_the_process_is_pinned_to_fewer_cores(monkeypatch):
+    """Reports, cards and benchmarks name the machine; a run pinned to one core of two says so."""
+    import os
+
+    from lerobot_crowdnav.cli import machine_description
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    assert machine_description().endswith(", 2 logical cores")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {1})
+    assert machine_description().endswith(", 2 logical cores (1 available to this process)")
