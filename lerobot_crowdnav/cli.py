@@ -100,4 +100,4 @@ def machine_description() -> str:
         pass
     total = os.cpu_count()
     usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else total
-    return f"{model}, {total} logical cores" + (f" ({usable} available to this process)" if usable < total else "")
+    return f"{model}, {total} logical cores" + (f" (pinned to {usable})" if usable < total else "")

@@ -156,4 +156,4 @@ def test_the_machine_line_says_when_the_process_is_pinned_to_fewer_cores(monkeyp
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
     assert machine_description().endswith(", 2 logical cores")
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {1})
-    assert machine_description().endswith(", 2 logical cores (1 available to this process)")
+    assert machine_description().endswith(", 2 logical cores (pinned to 1)")
