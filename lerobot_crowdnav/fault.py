@@ -33,12 +33,14 @@ def point(name: str) -> None:
         os.kill(os.getpid(), getattr(signal, sig[0]) if sig else signal.SIGKILL)
 
 
-def write_text(path: Path, text: str) -> None:
-    """Write a file so that readers see either its old content or the whole new one."""
+def write_text(path: Path, text: str, injectable: bool = True) -> None:
+    """Write a file so that readers see either its old content or the whole new one.
+    ``injectable=False``: no fault point, for writes whose number depends on timing (a heartbeat)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
-    point("atomic.file")
+    if injectable:
+        point("atomic.file")
     tmp.replace(path)
 
 

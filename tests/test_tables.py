@@ -16,7 +16,7 @@ from lerobot_crowdnav.evaluation.baselines import TABLES, _slug
 from lerobot_crowdnav.evaluation.report import (Row, boundary_audit, cell, csv_table, markdown_table, parameter_table,
                                                  wall_audit)
 from lerobot_crowdnav.evaluation.tables import (BASELINE_COLUMNS, BLOCKS, DOCS, ROOT, MAIN_TABLES, TablesConfig,
-                                                import_baselines, regenerate, tables)
+                                                import_baselines, read_csv, regenerate, tables)
 
 DATA = ROOT / "docs" / "data"
 
@@ -27,6 +27,15 @@ def blocks(text: str) -> dict[str, str]:
 
 def outside(text: str) -> str:
     return re.sub(r"<!-- table:([\w-]+) -->\n.*?<!-- /table -->", r"<\1>", text, flags=re.S)
+
+
+def copy_repo(root: Path, data: bool = True) -> None:
+    """The generated docs (and with ``data`` their docs/data) under ``root``, to rewrite there."""
+    for doc in DOCS:
+        (root / doc).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ROOT / doc, root / doc)
+    if data:
+        shutil.copytree(DATA, root / "docs" / "data")
 
 
 def test_committed_tables_are_what_make_tables_writes():
@@ -41,10 +50,7 @@ def test_committed_tables_are_what_make_tables_writes():
 
 
 def test_check_mode_finds_a_hand_edited_number_and_a_rerun_restores_it(tmp_path):
-    for doc in DOCS:
-        (tmp_path / doc).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ROOT / doc, tmp_path / doc)
-    shutil.copytree(DATA, tmp_path / "docs" / "data")
+    copy_repo(tmp_path)
     results = tmp_path / "docs" / "results.md"
     committed = results.read_text()
     row = next(line for line in blocks(committed)["main-bounded"].splitlines() if line.startswith("| PDPO (H = 5"))
@@ -93,9 +99,7 @@ def test_the_command_writes_what_it_reads(tmp_path):
             (base / key / _slug(name)).mkdir(parents=True)
             (base / key / _slug(name) / "metrics.json").write_text(json.dumps(m))
             baseline_rows[key].append(Row(name, [m]))
-    for doc in DOCS:
-        (root / doc).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ROOT / doc, root / doc)
+    copy_repo(root, data=False)
     shutil.copytree(DATA / "plain_bc", root / "docs" / "data" / "plain_bc")  # frozen: no run writes it
     before = {doc: (root / doc).read_text() for doc in DOCS}
 
@@ -205,10 +209,7 @@ def test_generalization_tables_come_from_the_report_csv_and_wait_for_it(tmp_path
     from lerobot_crowdnav.evaluation.tables import GENERALIZATION_TABLES, NOT_GENERATED
 
     root = tmp_path / "repo"
-    for doc in DOCS:
-        (root / doc).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ROOT / doc, root / doc)
-    shutil.copytree(DATA, root / "docs" / "data")
+    copy_repo(root)
     for name in GENERALIZATION_TABLES:
         (root / "docs" / "data" / "main" / name).unlink(missing_ok=True)
     assert tables(TablesConfig(root=root)) == [root / "docs" / "results.md"]  # back to the placeholders
@@ -241,13 +242,8 @@ def test_generalization_tables_come_from_the_report_csv_and_wait_for_it(tmp_path
 def test_the_plain_bc_tables_keep_the_policies_shipped_before_whatever_main_run_is_imported(tmp_path):
     """docs/data/plain_bc is frozen: importing a new `make main` run rewrites the main tables, not
     the plain-BC ones, which show the frozen files' PDPO rows, relabelled, with their own cells."""
-    from lerobot_crowdnav.evaluation.generalization import read_csv
-
     root = tmp_path / "repo"
-    for doc in DOCS:
-        (root / doc).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ROOT / doc, root / doc)
-    shutil.copytree(DATA, root / "docs" / "data")
+    copy_repo(root)
     before = blocks((root / "docs" / "results.md").read_text())
     run = tmp_path / "main"
     shutil.copytree(DATA / "main", run / "tables")
@@ -257,7 +253,7 @@ def test_the_plain_bc_tables_keep_the_policies_shipped_before_whatever_main_run_
     got = blocks((root / "docs" / "results.md").read_text())
     assert got["main-bounded"] != before["main-bounded"]
     assert all(got[name] == before[name] for name in got if name.startswith("plain-bc"))
-    frozen = {r["method"]: r for r in read_csv((DATA / "plain_bc" / "results_bounded.csv").read_text())}
+    frozen = {r["method"]: r for r in read_csv(DATA / "plain_bc" / "results_bounded.csv")}
     sr = float(frozen["PDPO (H = 5, fine-tuned)"]["SR_mean"])
     assert f"| Bounded | PDPO (H = 5, plain BC, fine-tuned) | {sr:.1f} |" in got["plain-bc"]
     generalization = got["plain-bc-generalization-bounded"].splitlines()

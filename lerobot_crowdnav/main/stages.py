@@ -37,7 +37,7 @@ class StageRunner:
 
             def heartbeat() -> None:
                 while not stop.wait(self.heartbeat_s):
-                    self._set_wall_time(name, before + time.perf_counter() - start, atomic_point=False)
+                    self._set_wall_time(name, before + time.perf_counter() - start, injectable=False)
 
             beat = threading.Thread(target=heartbeat, name=f"stage time: {name}", daemon=True)
             beat.start()
@@ -57,15 +57,8 @@ class StageRunner:
         time includes the interrupted attempts, a SIGKILLed one up to its last heartbeat)."""
         return json.loads(self.times_file.read_text()) if self.times_file.exists() else {}
 
-    def _set_wall_time(self, name: str, seconds: float, atomic_point: bool = True) -> None:
-        """Record ``seconds`` as the stage's time so far. The heartbeat's writes (``atomic_point``
-        False) skip the fault-injection point: their number depends on timing, not on the code path."""
+    def _set_wall_time(self, name: str, seconds: float, injectable: bool = True) -> None:
+        """Record ``seconds`` as the stage's time so far (the heartbeat's writes are not fault points)."""
         times = self.wall_times()
         times[name] = seconds
-        text = json.dumps(times, indent=2)
-        if atomic_point:
-            fault.write_text(self.times_file, text)
-        else:
-            tmp = self.times_file.with_name(f".{self.times_file.name}.heartbeat")
-            tmp.write_text(text)
-            tmp.replace(self.times_file)
+        fault.write_text(self.times_file, json.dumps(times, indent=2), injectable)
