@@ -252,6 +252,7 @@ def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp
                 "explained_variance", "perf/env_steps_per_s"):
         assert key in records[2]
     assert "val/success_rate" in records[0] and "val/success_rate" in records[2]
+    assert records[1]["device"] == records[2]["device"] == "cpu"  # a card says where a run's env steps ran
     ckpts = out / "checkpoints"
     assert (ckpts / "last").resolve().name == "000000064"
     assert (ckpts / "best" / "pretrained_model" / "model.safetensors").exists()

@@ -182,6 +182,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert json.loads((baseline / "config.json").read_text())["type"] == "crowdnavpp"
         assert (baseline / "learning_curve.png").stat().st_size > 5_000
         assert f"| train crowdnavpp {task} seed=1000 | " in (baseline / "README.md").read_text()
+        assert "Where `" not in card  # every stage ran on the CPU: the machine line says it all
     commands = json.loads((root / "commands.json").read_text())
     assert commands["pretrain bounded H=5 seed=1000"][0] == "lerobot-train"
     assert commands["train crowdnavpp original seed=1000"][:2] == ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp"]
@@ -246,6 +247,31 @@ def test_select_candidates_are_the_best_read_saved_checkpoints(tmp_path):
     assert got[0][2] == tmp_path / "checkpoints" / "best" / "pretrained_model"
     assert got[1][2] == tmp_path / "checkpoints" / "000000100" / "pretrained_model"
     assert [s for s, _, _ in select_candidates(tmp_path, 10)] == [400, 100, 300, 500, 600]
+
+
+def test_a_card_says_where_a_stage_moved_to_a_gpu_ran(tiny_main):
+    """A fine-tuning run moved to a lent GPU and back: the card splits its env steps and training
+    time by device, from the trainer's records (here the first of its two iterations relabelled)."""
+    cfg = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml", args=[f"--output_root={tiny_main}"])
+    job = Training(cfg)
+    progress = tiny_main / "tiny" / "finetune" / "bounded_h5_s1000" / "progress.jsonl"
+    card = tiny_main / "tiny" / "hub" / "models" / "local" / "pdpo_bounded_h5" / "README.md"
+    before, kept = progress.read_text(), {p: p.read_text() for p in card.parent.parent.glob("*/README.md")}
+    records = [json.loads(line) for line in before.splitlines()]
+    records[1]["device"] = "cuda: NVIDIA H100 80GB HBM3"
+    progress.write_text("".join(json.dumps(r) + "\n" for r in records))
+    try:
+        job.push("BoundedCrowdNav-v0")
+        lines = [line for line in card.read_text().splitlines() if line.startswith("Where `")]
+        gpu_steps, gpu_s = records[1]["env_steps"], records[1]["time/wall_s"]
+        cpu_steps, cpu_s = records[-1]["env_steps"] - gpu_steps, records[-1]["time/wall_s"] - gpu_s
+        assert lines == [f"Where `finetune bounded H=5 seed=1000` ran (its trainer's records): {gpu_steps:,} env steps "
+                         f"in {gpu_s / 60:.1f} min on NVIDIA H100 80GB HBM3; {cpu_steps:,} env steps in {cpu_s / 60:.1f} "
+                         f"min on the CPU."]
+    finally:  # the fixture's run as it was, for the tests after this one
+        progress.write_text(before)
+        for path, text in kept.items():  # the push rewrote every card of the task
+            path.write_text(text)
 
 
 def test_the_checkpoint_choice_is_made_again_when_its_settings_change(tiny_main, tmp_path):

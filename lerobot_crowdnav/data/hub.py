@@ -139,7 +139,8 @@ def best_checkpoint_lines(pretrained: Path, recipe: dict | None = None) -> list[
 def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: str | None, run: dict | None,
               algorithm: str, made: str) -> list[str]:
     """A model card's evaluation table, learning curve (``algorithm``'s), the command that
-    reproduces it (what it ``made``) with its stages' wall times, and how to use it."""
+    reproduces it (what it ``made``) with its stages' wall times (and, with ``devices``, where a
+    trainer's env steps ran), and how to use it."""
     lines = evaluation_lines(metrics)
     if curve:
         lines += ["", "## Learning curve", "", f"![{algorithm} learning curve]({curve})"]
@@ -152,6 +153,10 @@ def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: st
             lines += [f"| {name} | {t / 60:.1f} |" for name, t in times.items()]
             lines += [f"| total | {sum(times.values()) / 60:.1f} |", ""]
             lines.append(f"Machine: {recipe.get('machine', 'unknown')}.")
+        for stage, by_device in (recipe.get("devices") or {}).items():  # a run moved to a lent GPU and back
+            parts = "; ".join(f"{int(d['env_steps']):,} env steps in {d['wall_s'] / 60:.1f} min on "
+                              f"{'the CPU' if name == 'cpu' else name.split(': ', 1)[-1]}" for name, d in by_device.items())
+            lines += ["", f"Where `{stage}` ran (its trainer's records): {parts}."]
     task = ((run or {}).get("env") or (metrics or {}).get("env") or {}).get("task", "BoundedCrowdNav-v0")
     return lines + ["", "## Use", "", "```bash",
                     f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task={task} "

@@ -21,6 +21,7 @@ from ..checkpoint_files import (BEST_INFO, FINETUNE_CONFIG, PRETRAINED_MODEL, TR
                                 TRAINING_STATE, TRAINING_STEP)
 from ..cli import machine_description
 from ..evaluation.report import Stage
+from ..rl.run_log import env_steps_by_device, read_progress
 from ..sim.config import PPO_STAGE2_ENV_SEED
 from .config import MainConfig
 from .paths import (SHORT, RunPaths, collect_stage, crowdnavpp_stage, eval_stage, finetune_stage, pretrain_stage,
@@ -40,8 +41,7 @@ def select_candidates(run: Path, k: int) -> list[tuple[int, float, Path]]:
     earlier), as (env steps, reading, pretrained_model dir): the numbered checkpoints saved where a
     reading was taken, and ``best`` (the trainer's choice, wherever it was saved)."""
     readings = {}
-    for line in (run / "progress.jsonl").read_text().splitlines():
-        record = json.loads(line)
+    for record in read_progress(run):
         if "val/success_rate" in record:  # a resumed run logs a reading again: the same value
             readings[record["env_steps"]] = record["val/success_rate"]
     ckpts = run / "checkpoints"
@@ -252,17 +252,14 @@ class Training:
         """The ``progress.jsonl`` records of each fine-tuning stage of one policy, by label, for
         ``plot_finetune_curves``. Stage 2 is drawn from where it starts in env steps (stage 1's
         best checkpoint) and after the whole of stage 1 in wall time (the time it cost)."""
-        def read(run: Path) -> list[dict]:
-            return [json.loads(line) for line in (run / "progress.jsonl").read_text().splitlines()]
-
-        first = read(self.paths.finetune_dir(task, h, seed))
+        first = read_progress(self.paths.finetune_dir(task, h, seed))
         if 2 not in self.ft_stages:
             return {label: first}
         start = env_steps_done(self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best")
         spent = max(r.get("time/wall_s") or 0.0 for r in first)
         second = [{**r, "env_steps": r["env_steps"] + start,
                    "time/wall_s": None if r.get("time/wall_s") is None else r["time/wall_s"] + spent}
-                  for r in read(self.paths.finetune_dir(task, h, seed, 2))]
+                  for r in read_progress(self.paths.finetune_dir(task, h, seed, 2))]
         second[0]["time/wall_s"] = spent  # its starting validation
         return {f"{label}, stage 1": first, f"{label}, stage 2": second}
 
@@ -284,11 +281,14 @@ class Training:
                               [collect_stage(task), pretrain_stage(task, h, seed),
                                *(finetune_stage(task, h, seed, n) for n in self.ft_stages),
                                *([select_stage(task, h, seed)] if self.cfg.ft_select_top else [])],
+                              {finetune_stage(task, h, seed, n): self.paths.finetune_dir(task, h, seed, n)
+                               for n in self.ft_stages},
                               self.selection_line(task, h, seed))
         if self.cfg.crowdnavpp_env_steps:
             self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}",
                               lambda: self.paths.crowdnavpp_dir(task, seed) / "training_curves.png",
-                              [crowdnavpp_stage(task, seed)])
+                              [crowdnavpp_stage(task, seed)],
+                              {crowdnavpp_stage(task, seed): self.paths.crowdnavpp_dir(task, seed)})
 
     def selection_line(self, task: str, h: int, seed: int) -> str | None:
         """The card's sentence on how ``select`` chose the checkpoint (None without a selection)."""
@@ -302,11 +302,12 @@ class Training:
                 f"validation episodes each ({100 * chosen['val_success_rate']:.1f} %{others}).")
 
     def _push_policy(self, task: str, ev: Evaluation, name: str, curve: Callable[[], Path], stages: list[str],
-                     checkpoint: str | None = None) -> None:
+                     runs: dict[str, Path], checkpoint: str | None = None) -> None:
         """``<hub>/models/<org>/<name>``: the checkpoint with its card (test metrics, the learning
-        curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it, and
-        ``checkpoint``: how it was chosen, when not the run's ``best``). Written on every run (under
-        a second), so that the card follows the latest evaluation and checkpoint choice."""
+        curve ``curve()`` gives, the command and the wall time of the ``stages`` that made it, where
+        the trainer ``runs`` of those stages ran when not all on the CPU, and ``checkpoint``: how it
+        was chosen, when not the run's ``best``). Written on every run (under a second), so that the
+        card follows the latest evaluation and checkpoint choice."""
         from ..data.hub import push_policy_to_dir
 
         hub, repo = self.paths.hub, f"{self.cfg.hub_org}/{name}"
@@ -319,6 +320,10 @@ class Training:
                   **({"checkpoint": checkpoint} if checkpoint else {})}
 
         def run() -> None:
+            devices = {stage: by_device for stage, out in runs.items() if (out / "progress.jsonl").exists()
+                       and set(by_device := env_steps_by_device(read_progress(out))) - {"cpu"}}
+            if devices:
+                recipe["devices"] = devices
             path = curve()
             push_policy_to_dir(ev.policy, repo, hub, True, metrics, path if path.exists() else None, recipe)
 

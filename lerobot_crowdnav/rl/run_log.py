@@ -55,3 +55,24 @@ class RunLog:
         from ..measure.plots import plot_finetune_curves
 
         plot_finetune_curves({self.out.name: self.records}, self.out / "training_curves.png")
+
+
+def read_progress(run: Path) -> list[dict]:
+    """The records of ``<run>/progress.jsonl`` (a fine-tuning or PPO run's output directory)."""
+    return [json.loads(line) for line in (Path(run) / "progress.jsonl").read_text().splitlines()]
+
+
+def env_steps_by_device(records: list[dict]) -> dict[str, dict[str, float]]:
+    """A run's env steps and training wall time (s) per device its iterations ran on, in order of
+    first use, from its ``progress.jsonl`` records; a record without ``device`` (written before
+    records kept it) counts as ``cpu``."""
+    by_device: dict[str, dict[str, float]] = {}
+    steps, wall = 0, 0.0
+    for r in records:
+        if r.get("time/wall_s") is None:  # the starting validation: no iteration
+            continue
+        d = by_device.setdefault(r.get("device", "cpu"), {"env_steps": 0, "wall_s": 0.0})
+        d["env_steps"] += r["env_steps"] - steps
+        d["wall_s"] += r["time/wall_s"] - wall
+        steps, wall = r["env_steps"], r["time/wall_s"]
+    return by_device

@@ -208,6 +208,8 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
 
     # -- the loop -----------------------------------------------------------------------------------
     per_iter = cfg.steps_per_iteration(world)
+    # each record names its device: a run moved to a lent GPU and back says which env steps ran where
+    device_name = acc.device.type + (f": {torch.cuda.get_device_name(acc.device)}" if acc.device.type == "cuda" else "")
     if progress["iteration"] == 0 and main:
         log.log({"iteration": 0, "env_steps": 0, **validate_and_keep_best()})  # the initial policy
     acc.wait_for_everyone()
@@ -221,7 +223,7 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
             fault.point("ppo.collected")
             t1 = time.perf_counter()
             record = {"iteration": progress["iteration"] + 1, "env_steps": progress["env_steps"] + per_iter,
-                      "rollout_digest": ro.digest(), **episode_stats(ro.episodes, acc)}
+                      "device": device_name, "rollout_digest": ro.digest(), **episode_stats(ro.episodes, acc)}
             record.update(update(model, agent, ro, cfg.ppo, optimizers, rng, acc,
                                  train_actor=progress["iteration"] >= cfg.ppo.n_critic_warmup_itr))
             t2 = time.perf_counter()
