@@ -6,9 +6,20 @@ Property tests draw the same examples on every run (reproducible CI). ``small_pd
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 from hypothesis import settings
+
+# 🤗 datasets keeps an Arrow copy of every dataset it loads (lerobot-train, DAgger rounds, the
+# tests' tiny datasets) in its cache, and nothing deletes them: the suite's go to a folder removed
+# at exit instead of the user's ~/.cache. Set before anything imports datasets (it reads it then).
+HF_DATASETS_CACHE = tempfile.mkdtemp(prefix="lerobot-crowdnav-tests-hf-")
+os.environ["HF_DATASETS_CACHE"] = HF_DATASETS_CACHE
+atexit.register(shutil.rmtree, HF_DATASETS_CACHE, ignore_errors=True)
 
 settings.register_profile("reproducible", derandomize=True, deadline=None)
 settings.load_profile("reproducible")

@@ -7,6 +7,7 @@ path of the machine a run was made on)."""
 from __future__ import annotations
 
 import ast
+import os
 import re
 from pathlib import Path
 
@@ -157,3 +158,13 @@ def test_the_machine_line_says_when_the_process_is_pinned_to_fewer_cores(monkeyp
     assert machine_description().endswith(", 2 logical cores")
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {1})
     assert machine_description().endswith(", 2 logical cores (pinned to 1)")
+
+
+def test_the_suite_keeps_its_dataset_caches_out_of_the_users_cache():
+    """Every dataset the tests load leaves an Arrow copy in 🤗 datasets' cache: the suite's go to a
+    temporary folder (conftest.py), in this process and in the lerobot-train processes it starts."""
+    import datasets
+    from conftest import HF_DATASETS_CACHE
+
+    assert Path(datasets.config.HF_DATASETS_CACHE) == Path(HF_DATASETS_CACHE)
+    assert os.environ["HF_DATASETS_CACHE"] == HF_DATASETS_CACHE
