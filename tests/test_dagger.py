@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from conftest import make_tiny_checkpoint
+from conftest import HF_DATASETS_CACHE, make_tiny_checkpoint
 from lerobot_crowdnav.data.dagger import ROUND_SEEDS, main as dagger_main, teacher_snippets
 from lerobot_crowdnav.data.dataset import COLLECTION_FILE
 from lerobot_crowdnav.data.hub import policy_card
@@ -106,7 +106,10 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     job = Training(cfg)
     task = "BoundedCrowdNav-v0"
     job.collect(task)
+    cached = set(Path(HF_DATASETS_CACHE).rglob("*.arrow"))  # the process's (the suite's) datasets cache
     job.pretrain(task, 1, 1000)
+    # lerobot-train's Arrow copies of the dataset went to the run folder, deleted after each segment
+    assert set(Path(HF_DATASETS_CACHE).rglob("*.arrow")) == cached and not (job.paths.root / ".hf_datasets_cache").exists()
     data = job.pretrain_dataset(task, 1, 1000)
     assert data != job.paths.dataset_root(task)
     rounds = json.loads((data / COLLECTION_FILE).read_text())["dagger"]
