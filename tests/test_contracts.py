@@ -149,8 +149,6 @@ def test_a_model_card_names_no_folder_of_the_machine_that_made_it(tmp_path):
 
 def test_the_machine_line_says_when_the_process_is_pinned_to_fewer_cores(monkeypatch):
     """Reports, cards and benchmarks name the machine; a run pinned to one core of two says so."""
-    import os
-
     from lerobot_crowdnav.cli import machine_description
 
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
