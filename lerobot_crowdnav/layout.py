@@ -9,10 +9,16 @@ processors read (``observation.state``, float32, robot-centred where noted).
   robot (m), visible humans first (nearest first); rows of invisible slots hold ``SENTINEL``
 * mask: 1 for the visible rows, 0 for the sentinel rows
 
-The module imports nothing, so the policy plugin can read it without loading the simulator.
+It imports nothing but ``typing`` at run time, so the policy plugins can read it without loading the
+simulator.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only
+    from torch import Tensor
 
 ROBOT_DIM = 7  # px, py, radius, gx, gy, v_pref, theta
 VELOCITY_DIM = 2  # vx, vy
@@ -38,6 +44,16 @@ def mask_slice(num_humans: int, prediction_steps: int) -> slice:
 
 def obs_dim(num_humans: int, prediction_steps: int) -> int:
     return mask_slice(num_humans, prediction_steps).stop
+
+
+def visible_prefix_groups(count: Tensor, groups: int) -> tuple[list[tuple[Tensor, int]], Tensor]:
+    """Batch rows in ``groups`` groups of similar visible counts, for a network that needs only
+    each row's visible human rows, which come first: ``count (B,)`` (long tensor) -> the groups
+    as (row indices, width k >= 1: the group's largest count, the slots to keep), and the
+    permutation that puts the groups' concatenated outputs back in batch order. Sorting by count
+    keeps each group's padding small; a few groups keep the per-group overhead small."""
+    order = count.argsort()
+    return [(rows, max(int(count[rows[-1]]), 1)) for rows in order.chunk(min(groups, len(order)))], order.argsort()
 
 
 def check_sentinel(policy_config, sentinel: float) -> None:

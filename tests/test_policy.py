@@ -181,6 +181,49 @@ def test_velocity_dropout_hides_the_robot_velocity_from_the_encoder():
         make_config(velocity_dropout=1.5)
 
 
+def test_training_encodes_only_the_visible_prefix_with_the_same_values_and_gradients(monkeypatch):
+    """With gradients on (lerobot-train, the PPO update) the encoder runs its per-human part on
+    each row's visible prefix only, in groups of similar counts (speed); the latent and every
+    parameter's gradient equal those of running all 20 slots, which the same humans in reversed
+    slots (not a prefix: the encoder is symmetric in the humans) and acting without gradients
+    both do. Counts 0 to 20, nobody visible included."""
+    torch.manual_seed(0)
+    b, n = 300, 20
+    count = torch.arange(b) % (n + 1)
+    state = torch.randn(b, 269)
+    state[:, 249:] = (torch.arange(n) < count[:, None]).float()
+    rows = state[:, 9:249].reshape(b, n, 12).clone()
+    rows[state[:, 249:] == 0] = 4.0  # a sentinel in normalized units
+    state[:, 9:249] = rows.flatten(1)
+    reversed_slots = state.clone()
+    reversed_slots[:, 9:249] = rows.flip(1).flatten(1)
+    reversed_slots[:, 249:] = state[:, 249:].flip(1)
+    enc = PDPOPolicy(make_config(dropout=0.0)).actor.encoder.train()
+    widths = []
+    pool = enc._pool
+    monkeypatch.setattr(enc, "_pool", lambda humans, *a: widths.append(humans.shape[1]) or pool(humans, *a))
+
+    def latent_and_grads(x):
+        enc.zero_grad()
+        z = enc(x)
+        (z * torch.linspace(-1, 1, z.shape[1])).sum().backward()
+        return z.detach(), {k: p.grad.clone() for k, p in enc.named_parameters()}
+
+    z_prefix, g_prefix = latent_and_grads(state)
+    assert len(widths) > 1 and min(widths) < n  # grouped, narrower than every slot
+    widths.clear()
+    z_all, g_all = latent_and_grads(reversed_slots)
+    assert widths == [n]
+    with torch.no_grad():
+        z_acting = enc(state)
+    assert widths == [n, n]
+    torch.testing.assert_close(z_prefix, z_all, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(z_prefix, z_acting, rtol=1e-5, atol=1e-5)
+    for k in g_all:  # float32 sums in another order: equal to 1e-4 of each gradient's scale (a bias
+        # that softmax ignores has a zero gradient, up to rounding)
+        assert (g_prefix[k] - g_all[k]).abs().max() <= 3e-4 * g_all[k].abs().max() + 1e-6, k
+
+
 def test_sentinel_rows_do_not_distort_state_statistics():
     cfg = make_config()
     rng = np.random.default_rng(0)

@@ -34,7 +34,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
 from torch import Tensor, nn
 
-from lerobot_crowdnav.layout import ROBOT_DIM, SELF_DIM, humans_slice, mask_slice
+from lerobot_crowdnav.layout import ROBOT_DIM, SELF_DIM, humans_slice, mask_slice, visible_prefix_groups
 
 from .configuration_crowdnavpp import CrowdNavPPConfig
 
@@ -229,9 +229,8 @@ class CrowdNavPPNet(nn.Module):
         count: the same values as running all N slots, at a fraction of the arithmetic (the
         512-wide attention is most of this network's cost). Large batches also apply the
         attention's out-projection and the spatial linear as one map (``composed_out``)."""
-        order = detected.argsort()
-        buckets = [(idx, int(detected[idx[-1]])) for idx in order.chunk(min(HUMAN_BUCKETS, len(order)))]  # sorted:
-        rows = sum(len(idx) * k for idx, k in buckets)  # the largest count last
+        buckets, back = visible_prefix_groups(detected, HUMAN_BUCKETS)
+        rows = sum(len(idx) * k for idx, k in buckets)
         composed, out = self.human_attn.composed_qkv(rows), self.composed_out(rows)
         parts = []
         for idx, k in buckets:
@@ -241,7 +240,7 @@ class CrowdNavPPNet(nn.Module):
             else:
                 z = nn.functional.linear(z, *out).relu()
             parts.append(nn.functional.pad(z, (0, 0, 0, humans.shape[1] - k)))
-        return torch.cat(parts)[order.argsort()]
+        return torch.cat(parts)[back]
 
     def composed_out(self, rows: int) -> tuple[Tensor, Tensor] | None:
         """The attention's out-projection and ``spatial_linear``'s Linear (no activation between

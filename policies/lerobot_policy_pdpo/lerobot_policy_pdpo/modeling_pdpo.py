@@ -26,9 +26,12 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_crowdnav.data.fast_loader import install as install_fast_loader
-from lerobot_crowdnav.layout import ROBOT_DIM, SELF_DIM, human_row_dim, humans_slice, mask_slice
+from lerobot_crowdnav.layout import ROBOT_DIM, SELF_DIM, human_row_dim, humans_slice, mask_slice, visible_prefix_groups
 
 from .configuration_pdpo import PDPOConfig
+
+# Groups of similar visible counts in which training runs the encoder's per-human part (speed only).
+HUMAN_GROUPS = 8
 
 
 def mlp(dims: list[int], activation: type[nn.Module] = nn.ReLU, last_activation: bool = False) -> nn.Sequential:
@@ -71,20 +74,32 @@ class CrowdEncoder(nn.Module):
                 "dataset's raw statistics; continue a run with --resume=true instead, or train from "
                 "--policy.type=pdpo.")
         visible = mask > 0.5  # (B, N)
+        if torch.is_grad_enabled() and not (visible[:, 1:] & ~visible[:, :-1]).any():
+            # Training (lerobot-train, the PPO update): only the visible prefix of each row, in
+            # groups of similar counts; the same values at a fraction of the per-human work.
+            groups, back = visible_prefix_groups(visible.sum(dim=1), HUMAN_GROUPS)
+            pooled = torch.cat([self._pool(humans[rows, :k], visible[rows, :k], w[rows]) for rows, k in groups])[back]
+        else:  # acting: every slot, as the shipped policies were evaluated (bitwise)
+            pooled = self._pool(humans, visible, w)
+        return self.latent_mlp(torch.cat([w, pooled], dim=-1))  # (B, Z)
+
+    def _pool(self, humans: Tensor, visible: Tensor, w: Tensor) -> Tensor:
+        """Human rows ``(B, n, row)``, their visibility ``(B, n)``, the robot ``(B, 9)`` -> the
+        attention-pooled edge features ``(B, E)``; rows past the visible ones change nothing."""
+        b, n = visible.shape
         nobody = ~visible.any(dim=1)  # (B,)
-        h = self.human_mlp(humans)  # (B, N, d)
+        h = self.human_mlp(humans)  # (B, n, d)
         # Keys of invisible humans are masked; a batch row with nobody visible attends to its
         # first (sentinel) row instead of producing NaN; its outputs are pooled away below.
         key_padding = ~visible
         key_padding[nobody, 0] = False
         attended, _ = self.attention(h, h, h, key_padding_mask=key_padding, need_weights=False)
         h = self.dropout(self.norm(h + attended))
-        e = self.edge_mlp(torch.cat([h, w[:, None].expand(b, self.n, SELF_DIM)], dim=-1))  # (B, N, E)
+        e = self.edge_mlp(torch.cat([h, w[:, None].expand(b, n, SELF_DIM)], dim=-1))  # (B, n, E)
         scores = self.pool_mlp(e).squeeze(-1).masked_fill(~visible, float("-inf"))
         scores = scores.masked_fill(nobody[:, None], 0.0)
         alpha = torch.softmax(scores, dim=1) * visible  # zero weights when nobody is visible
-        pooled = (alpha[..., None] * e).sum(dim=1)  # (B, E)
-        return self.latent_mlp(torch.cat([w, pooled], dim=-1))  # (B, Z)
+        return (alpha[..., None] * e).sum(dim=1)
 
     def _robot_input(self, w: Tensor) -> Tensor:
         """The robot's 9 floats with the velocity zeroed (its normalized mean) per
