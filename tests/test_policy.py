@@ -151,6 +151,31 @@ def test_noise_draws_share_one_encoding_and_respect_padding(dataset_root):
         make_config(noise_draws=0)
 
 
+def test_the_denoiser_shares_one_latent_among_consecutive_rows():
+    """z with one row per r consecutive rows of x (a state's noise draws, a chain's transitions):
+    the same noise predictions and gradients as z repeated r times, the latent's share of the
+    first layer computed once per latent; rows that cannot share evenly are refused."""
+    torch.manual_seed(0)
+    den = PDPOPolicy(make_config()).actor.denoiser
+    x, k = torch.randn(60, 5, 2), torch.randint(0, 20, (60,))
+    z = torch.randn(12, 256, requires_grad=True)
+
+    def out_and_grads(latent):
+        den.zero_grad()
+        z.grad = None
+        out = den(x, k, latent)
+        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
+        return out.detach(), z.grad.clone(), {n: p.grad.clone() for n, p in den.named_parameters()}
+
+    shared, repeated = out_and_grads(z), out_and_grads(z.repeat_interleave(5, dim=0))
+    torch.testing.assert_close(shared[0], repeated[0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(shared[1], repeated[1], rtol=1e-4, atol=1e-5)
+    for n in repeated[2]:
+        torch.testing.assert_close(shared[2][n], repeated[2][n], rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="cannot share"):
+        den(x, k, z[:7])
+
+
 def test_velocity_dropout_hides_the_robot_velocity_from_the_encoder():
     """velocity_dropout = 1: the latent does not depend on entries 7-8 (the previous action), in
     training and acting alike; 0 < p < 1 drops them for about a fraction p of the training

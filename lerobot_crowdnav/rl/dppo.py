@@ -74,7 +74,7 @@ def transition_log_prob(actor: DiffusionActor, z: Tensor, chain: Tensor, min_std
     k = torch.arange(ft - 1, -1, -1, device=chain.device).repeat(b)  # (B*K',)
     x_k = chain[:, :-1].reshape(b * ft, *chain.shape[2:])
     x_prev = chain[:, 1:].reshape(b * ft, *chain.shape[2:])
-    mean, std = actor.p_mean_std(x_k, k, z.repeat_interleave(ft, dim=0))
+    mean, std = actor.p_mean_std(x_k, k, z)  # one latent per chain, shared by its K' transitions
     dens = torch.distributions.Normal(mean, std.clamp(min=min_std)).log_prob(x_prev).clamp(-5, 2)
     logp = dens[:, :actions].mean(dim=(-2, -1))
     return logp.view(b, ft)

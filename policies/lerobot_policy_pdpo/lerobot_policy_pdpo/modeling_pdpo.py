@@ -138,8 +138,19 @@ class Denoiser(nn.Module):
         self.net = mlp([2 * cfg.horizon + cfg.latent_dim + t, *cfg.denoiser_dims, 2 * cfg.horizon])
 
     def forward(self, x: Tensor, k: Tensor, z: Tensor) -> Tensor:
-        out = self.net(torch.cat([x.flatten(1), z, self.time_embed(k)], dim=-1))
-        return out.view(-1, self.horizon, 2)
+        """``x (B, H, 2)``, ``k (B,)``, ``z (B, Z)``, or ``(B / r, Z)``: one latent for each r
+        consecutive rows (a state's noise draws or chain transitions), whose share of the first
+        layer (256 of its 282 inputs) is then computed once per latent instead of r times."""
+        if z.shape[0] == x.shape[0]:
+            out = self.net(torch.cat([x.flatten(1), z, self.time_embed(k)], dim=-1))
+            return out.view(-1, self.horizon, 2)
+        if x.shape[0] % z.shape[0]:
+            raise ValueError(f"{x.shape[0]} rows of x cannot share {z.shape[0]} latents evenly")
+        first = self.net[0]
+        w_x, w_z, w_k = first.weight.split([x[0].numel(), z.shape[1], first.in_features - x[0].numel() - z.shape[1]], dim=1)
+        shared = nn.functional.linear(z, w_z, first.bias).repeat_interleave(x.shape[0] // z.shape[0], dim=0)
+        h = shared + nn.functional.linear(x.flatten(1), w_x) + nn.functional.linear(self.time_embed(k), w_k)
+        return self.net[1:](h).view(-1, self.horizon, 2)
 
 
 def cosine_beta_schedule(steps: int, s: float = 0.008) -> np.ndarray:
@@ -188,9 +199,9 @@ class DiffusionActor(nn.Module):
         averaged over the chunk steps ``valid (B, H)`` (not padding); ``x0 (B, H, 2)`` in [-1, 1].
         ``noise_draws`` (k, eps) pairs per observation share one encoding: the encoder costs far
         more than the denoiser, so extra draws lower the gradient's variance almost for free."""
-        z = self.encoder(state)
+        z = self.encoder(state)  # one latent per observation, shared by its draws (Denoiser.forward)
         if noise_draws > 1:
-            z, x0, valid = (t.repeat_interleave(noise_draws, dim=0) for t in (z, x0, valid))
+            x0, valid = (t.repeat_interleave(noise_draws, dim=0) for t in (x0, valid))
         b = x0.shape[0]
         k = torch.randint(0, len(self.alphas_cumprod), (b,), device=x0.device)
         noise = torch.randn_like(x0)
@@ -204,7 +215,8 @@ class DiffusionActor(nn.Module):
         """Mean and std ``(B, 1, 1)`` of p(x_{k-1} | x_k) for per-sample reverse steps ``k (B,)``
         around the x_0 estimate clamped to [-denoised_clip_value, +denoised_clip_value]: the DDPM
         posterior, or DDIM with eta = 1 (``deterministic``: eta = 0, std 0), whose direction term
-        uses the noise implied by the clamped x_0 (DPPO)."""
+        uses the noise implied by the clamped x_0 (DPPO). ``z``: per row, or per r consecutive rows
+        (``Denoiser.forward``)."""
         eps = self.denoiser(x, self.timestep[k], z)
         at = lambda buf: buf[k][:, None, None]  # noqa: E731
         x0 = at(self.sqrt_recip_abar) * x - at(self.sqrt_recipm1_abar) * eps
