@@ -1,5 +1,5 @@
 """BC training throughput of the PDPO policy on this machine: samples/s of one lerobot-style
-optimizer step (denoising loss, backward, AdamW, EMA) for each setting, interleaved repeats,
+optimizer step (denoising loss, backward, the policy's AdamW preset, EMA) for each setting, interleaved repeats,
 medians. Data: random normalized states with a realistic visibility mask (the loader is measured
 by scripts/bench_loader.py).
 
@@ -36,7 +36,7 @@ def batch(b: int, horizon: int, gen: torch.Generator) -> dict:
 
 def time_setting(b: int, draws: int, bf16: bool, steps: int, horizon: int) -> float:
     policy = make_policy(horizon=horizon, noise_draws=draws)
-    opt = torch.optim.AdamW(policy.get_optim_params(), lr=1e-3, weight_decay=1e-6)
+    opt = policy.config.get_optimizer_preset().build(policy.get_optim_params())  # what lerobot-train builds
     gen = torch.Generator().manual_seed(0)
     data = [batch(b, horizon, gen) for _ in range(4)]
 

@@ -257,6 +257,9 @@ def test_two_iterations_write_checkpoints_that_load_and_evaluate(pretrained, tmp
     assert (ckpts / "last").resolve().name == "000000064"
     assert (ckpts / "best" / "pretrained_model" / "model.safetensors").exists()
     assert (out / "training_curves.png").stat().st_size > 10_000
+    saved = torch.load(ckpts / "last" / "training_state" / "optimizers.pt", weights_only=True)
+    groups = [g for name in ("actor_opt", "critic_opt") for g in saved[name]["param_groups"]]
+    assert groups and all(g["fused"] for g in groups)  # torch's fused AdamW, restored with the state on resume
     assert any((out / "tensorboard").iterdir())
 
     path = ckpts / "last" / "pretrained_model"

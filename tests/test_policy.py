@@ -329,6 +329,8 @@ def test_lerobot_train_then_lerobot_eval(dataset_root, tmp_path):
     assert {"config.json", "model.safetensors", "train_config.json", "policy_preprocessor.json",
             "policy_postprocessor.json"} <= names
     assert json.loads((ckpt / "config.json").read_text())["type"] == "pdpo"
+    optimizer = json.loads((ckpt / "train_config.json").read_text())["optimizer"]
+    assert optimizer["type"] == "pdpo_adamw" and optimizer["fused"] is True  # the policy's preset
     # Starting from the checkpoint with a dataset: lerobot-train swaps in the dataset's raw
     # statistics, whose normalized mask would hide the nearest humans; PDPO refuses them.
     again = subprocess.run(

@@ -6,9 +6,19 @@ from dataclasses import dataclass, field
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import NormalizationMode
-from lerobot.optim.optimizers import AdamWConfig
+from lerobot.optim.optimizers import AdamWConfig, OptimizerConfig
 
 from lerobot_crowdnav.layout import SENTINEL, check_policy_features, obs_dim
+
+
+@OptimizerConfig.register_subclass("pdpo_adamw")
+@dataclass
+class FusedAdamWConfig(AdamWConfig):
+    """lerobot's AdamW with torch's fused kernel: one pass over the parameters instead of a loop
+    over its 34 tensors, 5.7x faster per step on one CPU core (1.75 against 9.96 ms), which was
+    12 % of a BC step. A resumed run keeps the kernel it was saved with (torch restores it)."""
+
+    fused: bool = True
 
 
 @PreTrainedConfig.register_subclass("pdpo")
@@ -139,9 +149,9 @@ class PDPOConfig(PreTrainedConfig):
     def validate_features(self) -> None:
         check_policy_features(self, "PDPO")
 
-    def get_optimizer_preset(self) -> AdamWConfig:
-        return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay,
-                           betas=self.optimizer_betas)
+    def get_optimizer_preset(self) -> FusedAdamWConfig:
+        return FusedAdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay,
+                                betas=self.optimizer_betas)
 
     def get_scheduler_preset(self) -> None:
         return None  # constant learning rate
