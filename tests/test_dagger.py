@@ -109,7 +109,7 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     cached = set(Path(HF_DATASETS_CACHE).rglob("*.arrow"))  # the process's (the suite's) datasets cache
     job.pretrain(task, 1, 1000)
     # lerobot-train's Arrow copies of the dataset went to the run folder, deleted after each segment
-    assert set(Path(HF_DATASETS_CACHE).rglob("*.arrow")) == cached and not (job.paths.root / ".hf_datasets_cache").exists()
+    assert set(Path(HF_DATASETS_CACHE).rglob("*.arrow")) == cached and not job.paths.datasets_cache.exists()
     data = job.pretrain_dataset(task, 1, 1000)
     assert data != job.paths.dataset_root(task)
     rounds = json.loads((data / COLLECTION_FILE).read_text())["dagger"]

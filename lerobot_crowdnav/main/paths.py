@@ -14,6 +14,8 @@
         hub/                           datasets/<org>/<name>, models/<org>/<name>
         figures/<task>/                storyboard, multimodality, fine-tuning curves
         tables/*.csv, commands.json, report.md
+        .hf_datasets_cache/            while a lerobot-train segment runs: 🤗 datasets' Arrow copy of
+                                       its dataset, removed after the segment
 
 <task> is ``bounded`` or ``original``. A stage is skipped when its output here is complete, and
 its wall time is summed under its name in ``stage_times.json`` (the model cards' wall-time tables
@@ -49,6 +51,10 @@ class RunPaths:
     @property
     def hub(self) -> Path:
         return self.root / "hub"
+
+    @property
+    def datasets_cache(self) -> Path:
+        return self.root / ".hf_datasets_cache"
 
     def dataset_root(self, task: str) -> Path:
         return self.root / "datasets" / SHORT[task]

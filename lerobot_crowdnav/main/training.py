@@ -138,7 +138,7 @@ class Training:
             # lerobot-train loads the dataset through 🤗 datasets, which keeps an Arrow copy of each
             # content it loads (1.6 GB for 3,000 demonstrations with their DAgger rounds) and never
             # deletes it: each segment's copy goes to the run folder and is removed after it.
-            cache = self.paths.root / ".hf_datasets_cache"
+            cache = self.paths.datasets_cache
             try:
                 subprocess.run(cmd, check=True, env={**os.environ, "HF_DATASETS_CACHE": str(cache)})
             finally:
