@@ -2,8 +2,9 @@
 """Data-loading throughput of a LeRobotDataset with and without ``lerobot_crowdnav.data.fast_loader``,
 against PDPO's training step.
 
-Measures, interleaving lerobot's own path (``orig``) and the fast path (``fast``) in alternating
-order, ``--repeats`` times each, and reports medians:
+Measures, interleaving lerobot's own path (``orig``), the fast path (``fast``) and, for the
+DataLoader, the fast reads item by item (``items``: without its batched ``__getitems__``) in
+rotating order, ``--repeats`` times each, and reports medians:
 
 * ``getitem``: samples/s of ``LeRobotDataset.__getitem__`` at random indices with PDPO's action
   chunk (``delta_timestamps={"action": [0, .25, .5, .75, 1]}``);
@@ -54,13 +55,16 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def set_mode(mode: str) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
     from lerobot_crowdnav.data import fast_loader
 
-    if mode == "fast":
+    fast_loader.uninstall()
+    if mode in ("fast", "items"):
         if not fast_loader.install():
             raise SystemExit("fast_loader.install() refused (lerobot version or LEROBOT_CROWDNAV_FAST_LOADER=0)")
-    else:
-        fast_loader.uninstall()
+    if mode == "items":
+        del LeRobotDataset.__getitems__  # the DataLoader then reads item by item
     assert fast_loader.is_installed() == (mode == "fast")
 
 
@@ -151,9 +155,10 @@ def main(argv=None) -> dict:
 
     for r in range(args.repeats):
         print(f"repeat {r + 1}/{args.repeats}", flush=True)
-        for mode in (("orig", "fast") if r % 2 == 0 else ("fast", "orig")):
+        modes = ["orig", "fast", "items"]
+        for mode in modes[r % 3:] + modes[:r % 3]:
             set_mode(mode)
-            if "getitem" in args.what:
+            if "getitem" in args.what and mode != "items":
                 record(f"getitem {mode}", time_getitem(ds, args.samples, seed=r))
             if "loader" in args.what:
                 for w in args.workers:
@@ -179,9 +184,10 @@ def main(argv=None) -> dict:
                      f"{step * 1e3:.1f} ms ({args.batch_size / step:,.0f} samples/s)")
     if "loader" in args.what:
         for w in args.workers:
-            o, f = medians[f"loader w={w} orig"], medians[f"loader w={w} fast"]
+            o, i, f = (medians[f"loader w={w} {m}"] for m in ("orig", "items", "fast"))
             line = (f"DataLoader batch {args.batch_size}, num_workers={w}: lerobot {o:,.0f} samples/s "
-                    f"({args.batch_size / o * 1e3:.1f} ms/batch), fast {f:,.0f} samples/s "
+                    f"({args.batch_size / o * 1e3:.1f} ms/batch), fast item by item {i:,.0f} samples/s "
+                    f"({args.batch_size / i * 1e3:.1f} ms/batch), fast batched {f:,.0f} samples/s "
                     f"({args.batch_size / f * 1e3:.1f} ms/batch), x{f / o:.1f}")
             if step is not None:
                 line += (f"; loader time / step time: lerobot {args.batch_size / o / step:.2f}, "

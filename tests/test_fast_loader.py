@@ -4,6 +4,7 @@ and the stock lerobot-train start-up (plugin loading, spawned DataLoader workers
 
 from __future__ import annotations
 
+import itertools
 import os
 import pickle
 import subprocess
@@ -101,6 +102,63 @@ def test_items_equal_lerobot_on_an_episode_filtered_dataset(dataset_root):
         assert int(ds[len(ds) - 1]["episode_index"]) == 3
 
 
+@pytest.mark.parametrize("contiguous", [True, False], ids=["contiguous_copies", "chunk_views"])
+@pytest.mark.parametrize("delta_timestamps", [CHUNK, WINDOWS, None], ids=["chunk", "windows", "no_delta"])
+def test_batches_equal_lerobot_item_by_item(dataset_root, delta_timestamps, contiguous, monkeypatch):
+    """``LeRobotDataset.__getitems__`` (what the DataLoader calls with a batch of indices) gives
+    lerobot's own items, whether a column is one contiguous copy or read across its Arrow chunks."""
+    if not contiguous:
+        monkeypatch.setattr(fast_loader, "CONTIGUOUS_BYTES", 0)
+    ds = LeRobotDataset(REPO, root=dataset_root, delta_timestamps=delta_timestamps)
+    edges = episode_edges(ds)
+    rng = np.random.default_rng(1)
+    batches = [edges, rng.integers(0, len(ds), 128).tolist(), [5, 5, 0], [len(ds) - 1]]
+    with patched(False):
+        assert "__getitems__" not in LeRobotDataset.__dict__
+        reference = [[ds[i] for i in batch] for batch in batches]
+    with patched(True):
+        for batch, ref in zip(batches, reference, strict=True):
+            assert fast_loader._batch_items(ds.reader, batch) is not None  # the batched path serves it
+            got = ds.__getitems__(batch)
+            assert len(got) == len(ref)
+            for i, item, want in zip(batch, got, ref, strict=True):
+                assert_items_equal(item, want, where=i)
+        chunks = len(ds.reader.__dict__[fast_loader._CACHE_ATTR].column("action").chunks)
+        assert (chunks == 1) if contiguous else (chunks >= 2)
+
+
+def test_a_dataloader_batch_is_lerobots_batch(dataset_root, monkeypatch):
+    ds = LeRobotDataset(REPO, root=dataset_root, delta_timestamps=CHUNK)
+    calls = []
+    batch_items = fast_loader._batch_items
+    monkeypatch.setattr(fast_loader, "_batch_items", lambda reader, idx: calls.append(len(idx)) or batch_items(reader, idx))
+
+    def first_batches(on: bool) -> list[dict]:
+        with patched(on):
+            loader = torch.utils.data.DataLoader(ds, batch_size=32, shuffle=True,
+                                                 generator=torch.Generator().manual_seed(0))
+            return list(itertools.islice(loader, 3))
+
+    reference, fast = first_batches(False), first_batches(True)
+    assert calls == [32, 32, 32]  # one batched read per batch, none item by item
+    for want, got in zip(reference, fast, strict=True):
+        assert_items_equal(got, want)
+
+
+def test_batches_the_fast_path_cannot_serve_are_lerobots(dataset_root):
+    filtered = LeRobotDataset(REPO, root=dataset_root, episodes=[1, 3], delta_timestamps=WINDOWS)
+    ds = LeRobotDataset(REPO, root=dataset_root, delta_timestamps=CHUNK)
+    with patched(False):
+        reference = [filtered[i] for i in range(len(filtered))]
+    with patched(True):
+        assert fast_loader._batch_items(filtered.reader, list(range(len(filtered)))) is None
+        for item, want in zip(filtered.__getitems__(list(range(len(filtered)))), reference, strict=True):
+            assert_items_equal(item, want)
+        with pytest.raises(IndexError):  # lerobot's own error, from its own path
+            ds.__getitems__([0, len(ds)])
+        assert_items_equal(ds.__getitems__([-1])[0], ds[len(ds) - 1])
+
+
 def test_items_follow_the_torch_default_dtype_like_lerobot(dataset_root):
     ds = LeRobotDataset(REPO, root=dataset_root, delta_timestamps=CHUNK)
     default = torch.get_default_dtype()
@@ -194,6 +252,7 @@ def test_install_is_idempotent_reversible_and_guarded(monkeypatch):
     fast_loader.install()
     fast_loader.uninstall()
     assert not fast_loader.is_installed() and "__getstate__" not in DatasetReader.__dict__
+    assert "__getitems__" not in LeRobotDataset.__dict__
     assert {n: DatasetReader.__dict__[n] for n in originals} == {n: fast_loader.ORIGINALS[n] for n in originals}
     assert all(f.__module__ == "lerobot.datasets.dataset_reader" for f in fast_loader.ORIGINALS.values())
     assert fast_loader.install() and fast_loader.install() and fast_loader.is_installed()
@@ -203,6 +262,11 @@ def test_install_is_idempotent_reversible_and_guarded(monkeypatch):
     monkeypatch.setattr(lerobot, "__version__", "0.6.1")
     monkeypatch.setenv(fast_loader.ENV_VAR, "0")
     assert not fast_loader.install() and not fast_loader.is_installed()
+    monkeypatch.delenv(fast_loader.ENV_VAR)
+    # A lerobot whose LeRobotDataset reads batches itself: left alone, nothing patched.
+    monkeypatch.setattr(LeRobotDataset, "__getitems__", lambda self, indices: [self[i] for i in indices], raising=False)
+    assert not fast_loader.install() and not fast_loader.is_installed()
+    assert DatasetReader.__dict__["get_item"] is fast_loader.ORIGINALS["get_item"]
 
 
 def test_loading_the_plugins_leaves_lerobot_untouched():
@@ -210,12 +274,13 @@ def test_loading_the_plugins_leaves_lerobot_untouched():
     code = ("from lerobot.utils.import_utils import register_third_party_plugins; register_third_party_plugins(); "
             "from lerobot.envs.configs import EnvConfig; from lerobot.configs.policies import PreTrainedConfig; "
             "from lerobot.datasets.dataset_reader import DatasetReader; "
+            "from lerobot.datasets.lerobot_dataset import LeRobotDataset; "
             "from lerobot_crowdnav.data import fast_loader; "
             "names = ('get_item', '_query_hf_dataset', '_get_query_indices'); "
             "print(EnvConfig.get_choice_class('crowdnav').__name__, PreTrainedConfig.get_choice_class('pdpo').__name__, "
             "fast_loader.is_installed(), "
             "all(DatasetReader.__dict__[n].__module__ == 'lerobot.datasets.dataset_reader' for n in names), "
-            "'__getstate__' in DatasetReader.__dict__)")
+            "'__getstate__' in DatasetReader.__dict__ or '__getitems__' in LeRobotDataset.__dict__)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.split()[-5:] == ["CrowdNavEnvConfig", "PDPOConfig", "False", "True", "False"]

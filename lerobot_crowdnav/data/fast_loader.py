@@ -22,6 +22,11 @@ What it does: :func:`install` replaces three ``DatasetReader`` methods (the orig
 * ``_get_query_indices``: the episode bounds come from cached ``dataset_from_index`` /
   ``dataset_to_index`` arrays;
 
+and gives ``LeRobotDataset`` a ``__getitems__`` (lerobot defines none), which torch's DataLoader
+calls with a whole batch of indices: each column, and each action window, is gathered for the
+batch in one numpy operation instead of item by item (the items, then collated as before, are the
+same), which takes the loader's share of a 128-sample batch from about 12 ms to a few;
+
 and adds ``DatasetReader.__getstate__`` (lerobot defines none) so that a pickled reader carries an
 empty cache whose unpickling installs the fast path: lerobot-train's DataLoader workers are
 *spawned* by default and import no plugin. Anything the cache cannot reproduce exactly (video
@@ -32,9 +37,10 @@ It is exact: the index arithmetic (``_absolute_to_relative_idx`` of an episode-f
 the clamping and ``*_is_pad`` masks) is lerobot's, and each tensor has the values, dtype and shape
 that ``torch.tensor`` of the Python value gives in the original (floats -> the default dtype,
 integers -> int64, bools -> bool), with the same keys in the same order;
-``tests/test_fast_loader.py`` compares whole items with ``torch.equal``. The cache holds views, not
-copies: beyond the shared page cache of the memory-mapped file it costs one byte per bool value
-and a few numpy headers per Arrow chunk, in every process. It is rebuilt when the reader's
+``tests/test_fast_loader.py`` compares whole items with ``torch.equal``. The cache holds views of the
+large columns (the state), and contiguous copies of the small ones (up to ``CONTIGUOUS_BYTES``:
+the scalars and the action, a few MB), in every process, beyond the shared page cache of the
+memory-mapped file. It is rebuilt when the reader's
 ``hf_dataset`` (or its table, or ``meta.episodes``) is replaced.
 
 Where it is active: opt-in, where our datasets are read for training. The PDPO policy plugin
@@ -67,6 +73,10 @@ SUPPORTED_LEROBOT_VERSION = "0.6.1"
 _CACHE_ATTR = "_crowdnav_fast_loader_cache"
 _EPISODES_ATTR = "_crowdnav_fast_loader_episodes"
 _MARK = "_crowdnav_fast_loader"
+
+# A column up to this size is copied into one contiguous array (the scalar columns and the
+# action: a few MB); larger ones (the state) stay views of their Arrow chunks.
+CONTIGUOUS_BYTES = 64 << 20
 
 # The methods replaced, as found before install (filled by install()).
 ORIGINALS: dict[str, Any] = {}
@@ -120,6 +130,8 @@ class _Column:
             chunks.append(array.reshape(n, *shape))
             starts.append(start)
             start += n
+        if len(chunks) > 1 and sum(c.nbytes for c in chunks) <= CONTIGUOUS_BYTES:
+            chunks, starts = [np.concatenate(chunks)], [0]  # one gather for a whole batch
         return cls(chunks, np.asarray(starts, dtype=np.int64), kind)
 
     def _to_torch(self, out: np.ndarray) -> torch.Tensor:
@@ -138,15 +150,18 @@ class _Column:
         out = chunk[[i - self.start_list[c]]]  # fancy indexing: a fresh copy, shape (1, ...)
         return self._to_torch(out.reshape(chunk.shape[1:]))
 
-    def gather(self, rows: list[int]) -> torch.Tensor:
+    def gather(self, rows) -> torch.Tensor:
+        """Rows ``rows`` (a list or an int array of any shape) stacked: shape ``(*rows.shape, ...)``."""
         idx = np.asarray(rows, dtype=np.int64)
-        which = np.searchsorted(self.starts, idx, side="right") - 1
+        flat = idx.reshape(-1)
+        which = np.searchsorted(self.starts, flat, side="right") - 1
         first = int(which[0])
         if (which == first).all():
-            out = self.chunks[first][idx - self.starts[first]]  # fancy indexing: a fresh copy
-        else:
-            out = np.stack([self.chunks[c][i - self.starts[c]] for c, i in zip(which.tolist(), idx.tolist())])
-        return self._to_torch(out)
+            out = self.chunks[first][flat - self.starts[first]]  # fancy indexing: a fresh copy
+        else:  # a view per row: cheaper than a pass per chunk when the rows are spread over many
+            chunks, offsets = self.chunks, (flat - self.starts[which]).tolist()
+            out = np.stack([chunks[c][i] for c, i in zip(which.tolist(), offsets)])
+        return self._to_torch(out.reshape(*idx.shape, *out.shape[1:]))
 
 
 class _ReaderCache:
@@ -177,17 +192,20 @@ class _ReaderCache:
         self.columns[key] = col
         return col
 
-    def row(self, idx: Any) -> dict | None:
-        """``hf_dataset[idx]`` (all columns, in table order), or None where it must not be used."""
-        if type(idx) is not int or not 0 <= idx < self.table.num_rows:
-            return None
+    def all_columns(self) -> list[tuple[str, _Column]] | None:
+        """Every column of the table in its order, or None if one of them is not cached."""
         if not self.every_column_done:
             cols = [(name, self.column(name)) for name in self.table.column_names]
             self.every_column = None if any(col is None for _, col in cols) else cols
             self.every_column_done = True
-        if self.every_column is None:
+        return self.every_column
+
+    def row(self, idx: Any) -> dict | None:
+        """``hf_dataset[idx]`` (all columns, in table order), or None where it must not be used."""
+        if type(idx) is not int or not 0 <= idx < self.table.num_rows:
             return None
-        return {name: col.row(idx) for name, col in self.every_column}
+        cols = self.all_columns()
+        return None if cols is None else {name: col.row(idx) for name, col in cols}
 
 
 def _reader_cache(reader) -> _ReaderCache | None:
@@ -303,6 +321,57 @@ def _fast_get_item(self, idx) -> dict:
     return item
 
 
+def _batch_items(reader, indices: list) -> list[dict] | None:
+    """``[reader.get_item(i) for i in indices]`` gathered a column at a time (one numpy gather per
+    column and per action window for the whole batch, instead of one per item), or None where the
+    per-item path must serve: video, image transforms or depth, an episode-filtered reader, an index
+    or a window row outside the table, a column that is not cached."""
+    cache = _reader_cache(reader)
+    if (cache is None or reader._meta.video_keys or reader._image_transforms is not None
+            or reader._image_depth_units or reader._absolute_to_relative_idx is not None):
+        return None
+    n_rows = cache.table.num_rows
+    cols = cache.all_columns()
+    if cols is None or not indices or not all(_is_index(i, n_rows) for i in indices):
+        return None
+    rows = np.asarray(indices, dtype=np.int64)
+    batch = {name: col.gather(rows) for name, col in cols}
+    padding = {}
+    if reader.delta_indices is not None:
+        bounds = _episode_bounds(reader)
+        episode = batch["episode_index"].numpy()
+        if bounds is None or ((episode < 0) | (episode >= len(bounds[0]))).any():
+            return None
+        start, end = bounds[0][episode][:, None], bounds[1][episode][:, None]
+        absolute = batch["index"].numpy()[:, None]
+        for key, deltas in reader.delta_indices.items():
+            wanted = absolute + np.asarray(deltas, dtype=np.int64)[None, :]
+            padding[f"{key}_is_pad"] = torch.from_numpy((wanted < start) | (wanted >= end))
+            window = np.maximum(start, np.minimum(end - 1, wanted))  # lerobot's clamp, verbatim
+            col = cache.column(key)
+            if col is None or window.size == 0 or window.min() < 0 or window.max() >= n_rows:
+                return None
+            batch[key] = col.gather(window)
+    keys = [*batch, *(k for k in padding if k not in batch)]
+    values = [{**batch, **padding}[k].unbind(0) for k in keys]
+    tasks = reader._meta.tasks.index
+    return [{**dict(zip(keys, item)), "task": tasks[int(t)]}
+            for item, t in zip(zip(*values), batch["task_index"].tolist())]
+
+
+def _fast_getitems(self, indices: list) -> list[dict]:
+    """``LeRobotDataset.__getitems__``, which torch's DataLoader calls with a whole batch of indices
+    when a dataset has it: the items of :func:`_batch_items` where it applies, else
+    ``[self[i] for i in indices]`` (lerobot's own checks and errors)."""
+    if self.writer is None or self._is_finalized:
+        reader = self._ensure_reader()
+        if reader.hf_dataset is not None:
+            items = _batch_items(reader, indices)
+            if items is not None:
+                return items
+    return [self[i] for i in indices]
+
+
 def _unpickled_cache() -> _ReaderCache:
     """What ``_InstallOnUnpickle`` becomes: an empty cache, after installing the fast path in this
     process (a DataLoader worker started with ``spawn``, lerobot-train's default, imports no plugin)."""
@@ -332,17 +401,22 @@ _PATCHES = {
 for _fn, _ in _PATCHES.values():
     _fn.__dict__[_MARK] = True
 _reader_getstate.__dict__[_MARK] = True
+_fast_getitems.__dict__[_MARK] = True
 
 
 def is_installed() -> bool:
-    """Whether lerobot's ``DatasetReader`` currently runs the fast methods."""
+    """Whether lerobot's ``DatasetReader`` currently runs the fast methods (and ``LeRobotDataset``
+    the batched read)."""
     from lerobot.datasets.dataset_reader import DatasetReader
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    return all(getattr(DatasetReader.__dict__.get(name), _MARK, False) for name in (*_PATCHES, "__getstate__"))
+    return (all(getattr(DatasetReader.__dict__.get(name), _MARK, False) for name in (*_PATCHES, "__getstate__"))
+            and getattr(LeRobotDataset.__dict__.get("__getitems__"), _MARK, False))
 
 
 def install() -> bool:
-    """Patch lerobot's ``DatasetReader`` (idempotent). Returns whether the fast path is active.
+    """Patch lerobot's ``DatasetReader`` and add ``LeRobotDataset.__getitems__`` (idempotent).
+    Returns whether the fast path is active.
 
     Does nothing when ``LEROBOT_CROWDNAV_FAST_LOADER=0``, on a lerobot other than 0.6.1, or when
     a method to replace is missing or has another signature (then nothing is patched at all).
@@ -352,6 +426,7 @@ def install() -> bool:
     try:
         import lerobot
         from lerobot.datasets.dataset_reader import DatasetReader
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
     except ImportError:  # pragma: no cover - lerobot is a dependency
         return False
     if getattr(lerobot, "__version__", None) != SUPPORTED_LEROBOT_VERSION:
@@ -374,10 +449,15 @@ def install() -> bool:
     if getstate is not None and not getattr(getstate, _MARK, False):
         logger.debug("fast loader: DatasetReader has its own __getstate__, not installed")
         return False
+    getitems = LeRobotDataset.__dict__.get("__getitems__")
+    if getitems is not None and not getattr(getitems, _MARK, False):
+        logger.debug("fast loader: LeRobotDataset has its own __getitems__, not installed")
+        return False
     ORIGINALS.update(found)
     for name, (fast, _) in _PATCHES.items():
         setattr(DatasetReader, name, fast)
     DatasetReader.__getstate__ = _reader_getstate
+    LeRobotDataset.__getitems__ = _fast_getitems
     logger.info("fast LeRobotDataset reads active (lerobot_crowdnav.data.fast_loader; %s=0 turns them off)", ENV_VAR)
     return True
 
@@ -385,9 +465,12 @@ def install() -> bool:
 def uninstall() -> None:
     """Restore lerobot's original methods (for tests and A/B measurements)."""
     from lerobot.datasets.dataset_reader import DatasetReader
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     for name, (fast, _) in _PATCHES.items():
         if DatasetReader.__dict__.get(name) is fast:
             setattr(DatasetReader, name, ORIGINALS[name])
     if DatasetReader.__dict__.get("__getstate__") is _reader_getstate:
         del DatasetReader.__getstate__  # lerobot defines none: back to object.__getstate__
+    if LeRobotDataset.__dict__.get("__getitems__") is _fast_getitems:
+        del LeRobotDataset.__getitems__  # lerobot defines none: the DataLoader reads item by item
