@@ -15,7 +15,8 @@ What it does: :func:`install` replaces three ``DatasetReader`` methods (the orig
 
 * ``_query_hf_dataset``: each queried non-video column of a plain numeric/bool Arrow type (a
   scalar or fixed-size lists of them, no nulls) is gathered from a per-reader, per-process cache of
-  zero-copy numpy views of the memory-mapped Arrow chunks (``hf_dataset.data.column(key)``);
+  the column (``hf_dataset.data.column(key)``) as numpy: views of its memory-mapped Arrow chunks,
+  or one contiguous copy of a small column;
 * ``get_item``: for readers without video, image transforms or depth, the row comes from the same
   cache and the task name is ``meta.tasks.index[task_idx]`` (what ``meta.tasks.iloc[i].name``
   returns); the rest of the method is lerobot's;
@@ -38,9 +39,9 @@ the clamping and ``*_is_pad`` masks) is lerobot's, and each tensor has the value
 that ``torch.tensor`` of the Python value gives in the original (floats -> the default dtype,
 integers -> int64, bools -> bool), with the same keys in the same order;
 ``tests/test_fast_loader.py`` compares whole items with ``torch.equal``. The cache holds views of the
-large columns (the state), and contiguous copies of the small ones (up to ``CONTIGUOUS_BYTES``:
-the scalars and the action, a few MB), in every process, beyond the shared page cache of the
-memory-mapped file. It is rebuilt when the reader's
+large columns (the state) and contiguous copies of the small ones (up to ``CONTIGUOUS_BYTES``: the
+scalars and the action, about 50 bytes per frame), in every process, beyond the shared page cache
+of the memory-mapped file. It is rebuilt when the reader's
 ``hf_dataset`` (or its table, or ``meta.episodes``) is replaced.
 
 Where it is active: opt-in, where our datasets are read for training. The PDPO policy plugin
@@ -75,7 +76,7 @@ _EPISODES_ATTR = "_crowdnav_fast_loader_episodes"
 _MARK = "_crowdnav_fast_loader"
 
 # A column up to this size is copied into one contiguous array (the scalar columns and the
-# action: a few MB); larger ones (the state) stay views of their Arrow chunks.
+# action: about 50 bytes per frame in all); larger ones (the state) stay views of their Arrow chunks.
 CONTIGUOUS_BYTES = 64 << 20
 
 # The methods replaced, as found before install (filled by install()).
