@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pytest
 import torch
 from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
@@ -172,3 +173,22 @@ def test_hub_dir_round_trip_and_overwrite(dataset_root, tmp_path):
     push_main([f"--root={dataset_root}", f"--repo_id={REPO}", f"--push_to_hub_dir={hub}", "--overwrite=true"])
     assert not (repo / "stale.txt").exists()
     assert sorted(p.name for p in repo.parent.iterdir()) == ["test_orca"]  # no staging left behind
+
+
+@pytest.mark.parametrize("typ", [pa.float64(), pa.int64(), pa.bool_(), pa.float32()])
+def test_episode_stats_read_back_as_numpy_rows_equal_the_python_path(typ):
+    """The statistics of a committed block are read as rows of one numpy array; each row equals
+    ``np.array(<its python list>)``, values, dtype and shape, across chunks; other column types
+    (float32 leaves, ragged or nested lists) take the Python path."""
+    from lerobot_crowdnav.data.dataset import _list_rows
+
+    rng = np.random.default_rng(0)
+    rows = rng.normal(0, 10, (7, 3))
+    values = (rows > 0 if typ == pa.bool_() else rows.astype(np.int64) if typ == pa.int64() else rows).tolist()
+    column = pa.chunked_array([pa.array(values[:4], pa.list_(typ)), pa.array(values[4:], pa.list_(typ))])
+    for other in (column, pa.chunked_array([pa.array([[1.0], [2.0, 3.0]])]), pa.chunked_array([pa.array([[[1.0]]])])):
+        want = [np.array(v) for v in other.to_pylist()]
+        got = _list_rows(other)
+        assert len(got) == len(want)
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == w.dtype and g.shape == w.shape and np.array_equal(g, w)

@@ -273,9 +273,25 @@ def _read_episode_stats(episodes_file: Path) -> list[dict]:
         if not name.startswith("stats/"):
             continue
         _, key, stat = name.split("/", 2)
-        for e, value in enumerate(table.column(name).to_pylist()):
-            out[e].setdefault(key, {})[stat] = np.array(value)
+        for e, value in enumerate(_list_rows(table.column(name))):
+            out[e].setdefault(key, {})[stat] = value
     return out
+
+
+_NUMPY_LEAVES = (pa.float64(), pa.int64(), pa.bool_())  # what np.array(<python values>) gives back
+
+
+def _list_rows(column: pa.ChunkedArray) -> list[np.ndarray]:
+    """``[np.array(v) for v in column.to_pylist()]`` for a column of equal-length lists, as rows of
+    one numpy array: a DAgger round's block holds tens of thousands of episodes, and their
+    state statistics as Python floats took gigabytes (a main job was killed for memory)."""
+    arr = column.combine_chunks()
+    if pa.types.is_list(arr.type) and arr.type.value_type in _NUMPY_LEAVES and arr.null_count == 0 and len(arr):
+        lengths = arr.value_lengths().to_numpy()
+        values = arr.flatten()
+        if (lengths == lengths[0]).all() and values.null_count == 0:
+            return list(values.to_numpy(zero_copy_only=False).reshape(len(arr), lengths[0]))
+    return [np.array(v) for v in column.to_pylist()]
 
 def _flat(d: dict, prefix: str = "") -> dict:
     out = {}
