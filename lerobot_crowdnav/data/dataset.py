@@ -293,6 +293,7 @@ def _list_rows(column: pa.ChunkedArray) -> list[np.ndarray]:
             return list(values.to_numpy(zero_copy_only=False).reshape(len(arr), lengths[0]))
     return [np.array(v) for v in column.to_pylist()]
 
+
 def _flat(d: dict, prefix: str = "") -> dict:
     out = {}
     for k, v in d.items():
