@@ -20,7 +20,9 @@ Action chunks are not stored: a policy asks lerobot for them through delta times
 Writing goes around lerobot's per-episode ``save_episode`` (about 0.1 s an episode here: stats with
 quantiles per episode, a JSON rewrite per episode): episodes are written in blocks, one data file
 and one episodes file per block, with the per-episode statistics computed by numpy and aggregated
-by lerobot's own ``aggregate_stats``. Each block is committed by atomic renames (data, episodes,
+over every episode by lerobot's own ``aggregate_feature_stats``, one feature at a time, read back
+from the committed episodes files (a DAgger round makes each labelled state an episode: holding
+every episode's statistics in memory took gigabytes). Each block is committed by atomic renames (data, episodes,
 stats, info last), so a killed collection leaves the blocks already committed, which load.
 """
 
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from lerobot.datasets.compute_stats import aggregate_stats
+from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.feature_utils import get_hf_features_from_features
 from lerobot.datasets.io_utils import load_info, write_info, write_stats
@@ -140,7 +142,6 @@ class DemonstrationWriter:
             self.root.rmdir()  # validated empty
         staging.replace(self.root)
         self.info = meta.info
-        self.episode_stats = []
         self.n_files = 0
 
     def _open_existing(self, collection: dict) -> None:
@@ -163,7 +164,6 @@ class DemonstrationWriter:
         for pattern in (DATA_FILE, EPISODES_FILE):
             for extra in sorted(self.root.glob(pattern.replace("{:03d}", "*")))[self.n_files:]:
                 extra.unlink()
-        self.episode_stats = [stats for f in files for stats in _read_episode_stats(f)]
 
     def _committed_files(self) -> list[Path]:
         """The episodes files of the committed blocks, in order."""
@@ -237,7 +237,7 @@ class DemonstrationWriter:
 
         # Aggregated over all episodes in order, not block by block: the same bits whatever the
         # block boundaries (an interrupted and resumed run ends with an uninterrupted run's stats).
-        stats = aggregate_stats(self.episode_stats + ep_stats)
+        stats = self._aggregate(ep_stats)
         self.info.total_episodes += len(episodes)
         self.info.total_frames += n_frames
         self.info.splits = {"train": f"0:{self.info.total_episodes}"}
@@ -261,21 +261,25 @@ class DemonstrationWriter:
             (tmp_root / "meta/info.json").replace(self.root / "meta/info.json")
             fault.point("collect.committed")
             shutil.rmtree(tmp_root)
-        self.episode_stats += ep_stats
         self.n_files += 1
 
+    def _aggregate(self, new: list[dict]) -> dict:
+        """lerobot's ``aggregate_stats`` over the committed episodes and ``new``, in order, one
+        feature at a time (the same arithmetic on the same stacked values, so the same bits)."""
+        files = self._committed_files()
+        return {key: aggregate_feature_stats([*(s for f in files for s in _read_feature_stats(f, key)),
+                                              *(s[key] for s in new)])
+                for key in new[0]}
 
-def _read_episode_stats(episodes_file: Path) -> list[dict]:
-    """The per-episode statistics of a committed episodes file, as ``_episode_stats`` made them."""
-    table = pq.read_table(episodes_file)
-    out = [{} for _ in range(table.num_rows)]
-    for name in table.column_names:
-        if not name.startswith("stats/"):
-            continue
-        _, key, stat = name.split("/", 2)
-        for e, value in enumerate(_list_rows(table.column(name))):
-            out[e].setdefault(key, {})[stat] = value
-    return out
+
+def _read_feature_stats(episodes_file: Path, key: str) -> list[dict]:
+    """One feature's per-episode statistics from a committed episodes file, as ``_episode_stats``
+    made them."""
+    prefix = f"stats/{key}/"
+    names = [n for n in pq.read_schema(episodes_file).names if n.startswith(prefix)]
+    table = pq.read_table(episodes_file, columns=names)
+    rows = {name[len(prefix):]: _list_rows(table.column(name)) for name in names}
+    return [dict(zip(rows, values)) for values in zip(*rows.values())]
 
 
 _NUMPY_LEAVES = (pa.float64(), pa.int64(), pa.bool_())  # what np.array(<python values>) gives back
