@@ -124,6 +124,12 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert ("; the robot's own velocity (the previous action) hidden from the policy in 50% of the training samples; "
             f"1 DAgger round aggregated into the demonstrations (2 episodes driven by the policy being trained, "
             f"{rounds[0]['snippets']:,} of their states labelled") in card
-    assert job.pretrain(task, 1, 1000).wall_time_s is None  # complete: skipped
+    stage = job.pretrain(task, 1, 1000)
+    assert stage.wall_time_s is None  # complete: skipped
+    # its recorded command (report, commands.json) is the whole pretraining: first segment, round, resume
+    first, rnd, resume = " ".join(stage.argv).split(" && ")
+    assert first.startswith("lerobot-train ") and "--steps=2 " in first
+    assert rnd.startswith("python -m lerobot_crowdnav.data.dagger ") and "--round=1 " in rnd and f"--root={data} " in rnd
+    assert resume.startswith("lerobot-train --config_path=") and resume.endswith(" --resume=true --steps=4")
     with pytest.raises(ValueError, match="bc_dagger_at"):
         MainConfig(models=None, bc_dagger_at=[0]).validate()

@@ -125,13 +125,26 @@ class Training:
         if self.device:
             argv.append(f"--policy.device={self.device}")
 
+        def resume_argv(target: int) -> list[str]:
+            return ["lerobot-train", f"--config_path={last / PRETRAINED_MODEL / TRAIN_CONFIG}", "--resume=true",
+                    f"--steps={target}"]
+
+        def dagger_argv(r: int) -> list[str]:
+            return [f"--policy_path={last / PRETRAINED_MODEL}", f"--root={data}", f"--round={r}",
+                    f"--episodes={self.cfg.bc_dagger_episodes}", f"--seed={seed}",
+                    *([f"--device={self.device}"] if self.device else [])]
+
+        # The stage's record (report, commands.json): every segment, so it reads as the whole pretraining.
+        record = list(argv)
+        for r, target in enumerate(segments[1:], start=1):
+            record += ["&&", "python", "-m", "lerobot_crowdnav.data.dagger", *dagger_argv(r), "&&", *resume_argv(target)]
+
         def train_to(target: int) -> None:
             cmd = list(argv)
             if last.exists():  # a later segment, or interrupted: lerobot-train resumes from its last checkpoint
                 if step_done() >= target:
                     return
-                cmd = ["lerobot-train", f"--config_path={last / PRETRAINED_MODEL / TRAIN_CONFIG}", "--resume=true",
-                       f"--steps={target}"]
+                cmd = resume_argv(target)
             elif out.exists():
                 shutil.rmtree(out)  # started but never checkpointed: lerobot-train refuses an existing dir
             cmd[0] = str(Path(sys.executable).parent / "lerobot-train")
@@ -153,12 +166,10 @@ class Training:
                 staging.replace(data)
             for r, target in enumerate(segments):
                 if r:  # a round is skipped once the dataset holds it
-                    dagger_main([f"--policy_path={last / PRETRAINED_MODEL}", f"--root={data}", f"--round={r}",
-                                 f"--episodes={self.cfg.bc_dagger_episodes}", f"--seed={seed}",
-                                 *([f"--device={self.device}"] if self.device else [])])
+                    dagger_main(dagger_argv(r))
                 train_to(target)
 
-        return self.runner.run(pretrain_stage(task, h, seed), argv, step_done() >= steps, run)
+        return self.runner.run(pretrain_stage(task, h, seed), record, step_done() >= steps, run)
 
     def finetune(self, task: str, h: int, seed: int, stage: int = 1) -> Stage:
         """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``best`` (stage 2)."""
