@@ -137,7 +137,7 @@ class Training:
         # The stage's record (report, commands.json): every segment, so it reads as the whole pretraining.
         record = list(argv)
         for r, target in enumerate(segments[1:], start=1):
-            record += ["&&", "python", "-m", "lerobot_crowdnav.data.dagger", *dagger_argv(r), "&&", *resume_argv(target)]
+            record += ["&&", "python", "-m", dagger_main.__module__, *dagger_argv(r), "&&", *resume_argv(target)]
 
         def train_to(target: int) -> None:
             cmd = list(argv)
