@@ -1,14 +1,20 @@
 """The imitation remedies side by side: BC-only success on the validation and test seeds with
 95 % Wilson intervals, how the test episodes end, and the copycat probe, read from the files the
-runs wrote (docs/recipes.md prints its output).
+runs wrote (docs/recipes.md prints its output); and, for a BC trained longer, its validation success
+against epochs as a table and a figure.
 
-    python scripts/imitation_table.py --manifest=remedies.json
+    python scripts/imitation_table.py --manifest=remedies.json [--plot=docs/figures/bc_epochs.png]
 
 The manifest lists the rows: ``{"rows": [{"label": "...", "val": ".../metrics.json", "test":
 ".../metrics.json", "probe": "probe.json", "probe_policy": "<the --policy.path given to the
 probe>", "cost": "what the pretraining cost"}]}`` (``val``, ``probe`` and ``cost`` optional).
 Metrics files come from ``lerobot-crowdnav-eval --eval.split=val|test``, probe files from
 ``scripts/probe_sensitivity.py --output=...``.
+
+An optional ``"curve"`` adds success against epochs: ``{"label": "...", "frames": <dataset frames>,
+"batch": <lerobot-train batch>, "points": [{"step": 30000, "val": ".../metrics.json"}, ...],
+"references": [{"label": "...", "val": ".../metrics.json"}]}``; the references (other BC policies
+on the same validation seeds) are drawn as bands.
 """
 
 from __future__ import annotations
@@ -24,19 +30,30 @@ HEADER = ["remedy", "val SR (%) [95 % CI]", "test SR (%) [95 % CI]", "test human
           "test TR (%)", "velocity follow", "goal turn (deg)", "pretraining cost"]
 
 
+CURVE_HEADER = ["lerobot-train steps", "epochs", "val SR (%) [95 % CI]", "val human CR (%)", "val wall CR (%)",
+                "val TR (%)"]
+
+
 @dataclass
 class TableConfig:
-    # The JSON manifest of the rows (see the module docstring).
+    # The JSON manifest of the rows and the optional curve (see the module docstring).
     manifest: Path | None = None
+    # Where to draw the manifest's curve (PNG): validation success against epochs, with 95 % intervals.
+    plot: Path | None = None
+
+
+def success(path: str) -> tuple[float, float, float]:
+    """Success rate of a metrics file and its 95 % Wilson interval, in %."""
+    m = json.loads(Path(path).read_text())
+    lo, hi = wilson_interval(round(m["sr"] * m["n_episodes"]), m["n_episodes"])
+    return 100 * m["sr"], 100 * lo, 100 * hi
 
 
 def success_cell(path: str | None) -> str:
     """``SR [lo, hi]`` of a metrics file, in %."""
     if not path:
         return "n/a"
-    m = json.loads(Path(path).read_text())
-    lo, hi = wilson_interval(round(m["sr"] * m["n_episodes"]), m["n_episodes"])
-    return f"{100 * m['sr']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+    return "{:.1f} [{:.1f}, {:.1f}]".format(*success(path))
 
 
 def row(spec: dict) -> list[str]:
@@ -49,17 +66,73 @@ def row(spec: dict) -> list[str]:
             *(f"{100 * test[k]:.1f}" for k in ("cr_human", "cr_wall", "tr")), *probe, spec.get("cost", "")]
 
 
+def markdown(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
+
+
 def table(manifest: dict) -> str:
-    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
-    lines += ["| " + " | ".join(row(spec)) + " |" for spec in manifest["rows"]]
-    return "\n".join(lines)
+    return markdown(HEADER, [row(spec) for spec in manifest["rows"]])
+
+
+def epochs(curve: dict, step: int) -> float:
+    return step * curve["batch"] / curve["frames"]
+
+
+def curve_table(curve: dict) -> str:
+    """Validation success and how the episodes end at each checkpoint of the curve."""
+    rows = []
+    for point in curve["points"]:
+        m = json.loads(Path(point["val"]).read_text())
+        rows.append([f"{point['step']:,}", f"{epochs(curve, point['step']):.1f}", success_cell(point["val"]),
+                     *(f"{100 * m[k]:.1f}" for k in ("cr_human", "cr_wall", "tr"))])
+    return markdown(CURVE_HEADER, rows)
+
+
+def plot_curve(curve: dict, path: Path) -> Path:
+    """Validation success (95 % intervals as error bars) against epochs, log scale; the references
+    as horizontal bands."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = sorted(curve["points"], key=lambda p: p["step"])
+    x = [epochs(curve, p["step"]) for p in points]
+    sr, lo, hi = (list(v) for v in zip(*(success(p["val"]) for p in points), strict=True))
+    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=120)
+    ax.errorbar(x, sr, yerr=[[s - l for s, l in zip(sr, lo)], [h - s for s, h in zip(sr, hi)]], marker="o",
+                capsize=3, color="C0", label=curve["label"])
+    for i, ref in enumerate(curve.get("references", []), start=1):
+        r, r_lo, r_hi = success(ref["val"])
+        ax.axhspan(r_lo, r_hi, color=f"C{i}", alpha=0.15)
+        ax.axhline(r, color=f"C{i}", ls="--", label=ref["label"])
+    ax.set_xscale("log")
+    ax.set_xlabel("epochs over the demonstrations")
+    ax.set_ylabel("validation success (%), BC only")
+    ax.set_ylim(0, 100)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def main(argv: list[str] | None = None) -> None:
     def run(cfg: TableConfig) -> None:
         if cfg.manifest is None or not Path(cfg.manifest).exists():
             raise FileNotFoundError(f"--manifest={cfg.manifest}: no such file")
-        print(table(json.loads(Path(cfg.manifest).read_text())))
+        manifest = json.loads(Path(cfg.manifest).read_text())
+        if cfg.plot is not None and "curve" not in manifest:
+            raise ValueError(f"--plot={cfg.plot}: the manifest has no curve to draw")
+        print(table(manifest))
+        if "curve" in manifest:
+            print()
+            print(curve_table(manifest["curve"]))
+            if cfg.plot is not None:
+                print(f"figure: {plot_curve(manifest['curve'], Path(cfg.plot))}")
 
     run_cli(TableConfig, run, argv)
 
