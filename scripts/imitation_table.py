@@ -12,9 +12,10 @@ Metrics files come from ``lerobot-crowdnav-eval --eval.split=val|test``, probe f
 ``scripts/probe_sensitivity.py --output=...``.
 
 An optional ``"curve"`` adds success against epochs: ``{"label": "...", "frames": <dataset frames>,
-"batch": <lerobot-train batch>, "points": [{"step": 30000, "val": ".../metrics.json"}, ...],
-"references": [{"label": "...", "val": ".../metrics.json"}]}``; the references (other BC policies
-on the same validation seeds) are drawn as bands.
+"batch": <lerobot-train batch>, "points": [{"step": 30000, "val": ".../metrics.json", "probe":
+"probe.json", "probe_policy": "..."}, ...], "references": [{"label": "...", "val": ".../metrics.json",
+"probe": ..., "probe_policy": ...}]}`` (``probe`` optional); the references (other policies on the
+same validation seeds and probe states) are drawn as horizontal lines.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ HEADER = ["remedy", "val SR (%) [95 % CI]", "test SR (%) [95 % CI]", "test human
 
 
 CURVE_HEADER = ["lerobot-train steps", "epochs", "val SR (%) [95 % CI]", "val human CR (%)", "val wall CR (%)",
-                "val TR (%)"]
+                "val TR (%)", "velocity follow", "goal turn (deg)"]
 
 
 @dataclass
@@ -56,14 +57,23 @@ def success_cell(path: str | None) -> str:
     return "{:.1f} [{:.1f}, {:.1f}]".format(*success(path))
 
 
+def probe(spec: dict) -> dict | None:
+    """The probe's figures of the spec's ``probe_policy``, if the spec names a probe file."""
+    if not spec.get("probe"):
+        return None
+    return json.loads(Path(spec["probe"]).read_text())["policies"][spec["probe_policy"]]
+
+
+def probe_cells(spec: dict) -> list[str]:
+    p = probe(spec)
+    return ["n/a", "n/a"] if p is None else [f"{p['velocity_follow']:.2f}", f"{p['goal_turn_deg']:.1f}"]
+
+
 def row(spec: dict) -> list[str]:
     test = json.loads(Path(spec["test"]).read_text())
-    probe = ["n/a", "n/a"]
-    if spec.get("probe"):
-        p = json.loads(Path(spec["probe"]).read_text())["policies"][spec["probe_policy"]]
-        probe = [f"{p['velocity_follow']:.2f}", f"{p['goal_turn_deg']:.1f}"]
     return [spec["label"], success_cell(spec.get("val")), success_cell(spec["test"]),
-            *(f"{100 * test[k]:.1f}" for k in ("cr_human", "cr_wall", "tr")), *probe, spec.get("cost", "")]
+            *(f"{100 * test[k]:.1f}" for k in ("cr_human", "cr_wall", "tr")), *probe_cells(spec),
+            spec.get("cost", "")]
 
 
 def markdown(header: list[str], rows: list[list[str]]) -> str:
@@ -85,13 +95,13 @@ def curve_table(curve: dict) -> str:
     for point in curve["points"]:
         m = json.loads(Path(point["val"]).read_text())
         rows.append([f"{point['step']:,}", f"{epochs(curve, point['step']):.1f}", success_cell(point["val"]),
-                     *(f"{100 * m[k]:.1f}" for k in ("cr_human", "cr_wall", "tr"))])
+                     *(f"{100 * m[k]:.1f}" for k in ("cr_human", "cr_wall", "tr")), *probe_cells(point)])
     return markdown(CURVE_HEADER, rows)
 
 
 def plot_curve(curve: dict, path: Path) -> Path:
-    """Validation success (95 % intervals as error bars) against epochs, log scale; the references
-    as horizontal bands."""
+    """Validation success (95 % intervals as error bars) and the probe's velocity follow against
+    epochs, log scale; the references as horizontal lines (success: with their interval as a band)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -100,19 +110,31 @@ def plot_curve(curve: dict, path: Path) -> Path:
     points = sorted(curve["points"], key=lambda p: p["step"])
     x = [epochs(curve, p["step"]) for p in points]
     sr, lo, hi = (list(v) for v in zip(*(success(p["val"]) for p in points), strict=True))
-    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=120)
+    fig, (ax, ax_v) = plt.subplots(1, 2, figsize=(11, 4), dpi=120)
     ax.errorbar(x, sr, yerr=[[s - l for s, l in zip(sr, lo)], [h - s for s, h in zip(sr, hi)]], marker="o",
                 capsize=3, color="C0", label=curve["label"])
+    probed = [(e, probe(p)["velocity_follow"]) for e, p in zip(x, points) if probe(p) is not None]
+    if probed:
+        ax_v.plot(*zip(*probed), marker="o", color="C0", label=curve["label"])
     for i, ref in enumerate(curve.get("references", []), start=1):
-        r, r_lo, r_hi = success(ref["val"])
-        ax.axhspan(r_lo, r_hi, color=f"C{i}", alpha=0.15)
-        ax.axhline(r, color=f"C{i}", ls="--", label=ref["label"])
-    ax.set_xscale("log")
-    ax.set_xlabel("epochs over the demonstrations")
+        if ref.get("val"):
+            r, r_lo, r_hi = success(ref["val"])
+            ax.axhspan(r_lo, r_hi, color=f"C{i}", alpha=0.15)
+            ax.axhline(r, color=f"C{i}", ls="--", label=ref["label"])
+        if probe(ref) is not None:
+            ax_v.axhline(probe(ref)["velocity_follow"], color=f"C{i}", ls="--", label=ref["label"])
     ax.set_ylabel("validation success (%), BC only")
     ax.set_ylim(0, 100)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax_v.set_ylabel("velocity follow (1: copies its velocity)")
+    ax_v.set_ylim(0, 1.05)
+    for a in (ax, ax_v):
+        a.set_xscale("log")
+        a.set_xticks([t for t in (1, 2, 5, 10, 20, 50, 100, 200) if min(x) / 1.5 <= t <= max(x) * 1.5])
+        a.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        a.set_xlabel("epochs over the demonstrations")
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -127,12 +149,12 @@ def main(argv: list[str] | None = None) -> None:
         manifest = json.loads(Path(cfg.manifest).read_text())
         if cfg.plot is not None and "curve" not in manifest:
             raise ValueError(f"--plot={cfg.plot}: the manifest has no curve to draw")
-        print(table(manifest))
+        blocks = [table(manifest)] if manifest.get("rows") else []
         if "curve" in manifest:
-            print()
-            print(curve_table(manifest["curve"]))
-            if cfg.plot is not None:
-                print(f"figure: {plot_curve(manifest['curve'], Path(cfg.plot))}")
+            blocks.append(curve_table(manifest["curve"]))
+        print("\n\n".join(blocks))
+        if cfg.plot is not None:
+            print(f"figure: {plot_curve(manifest['curve'], Path(cfg.plot))}")
 
     run_cli(TableConfig, run, argv)
 

@@ -123,21 +123,26 @@ def test_imitation_table_reads_the_runs_files(tmp_path):
 
 def test_imitation_table_curve_against_epochs(tmp_path, capsys):
     """The curve of a longer BC: epochs from steps, batch and frames; validation success with its
-    Wilson interval and the outcomes per checkpoint; the figure written; --plot without a curve
-    is refused."""
+    Wilson interval, the outcomes and the probe (where given) per checkpoint; the figure written;
+    --plot without a curve is refused."""
     table_mod = sys.modules["imitation_table"]
     import json
 
     for step, sr in ((30000, 0.2), (60000, 0.31)):
         (tmp_path / f"{step}.json").write_text(json.dumps(
             {"sr": sr, "n_episodes": 500, "cr_human": 0.6, "cr_wall": 0.15, "tr": 0.05}))
+    (tmp_path / "probe.json").write_text(json.dumps({"policies": {
+        "A": {"velocity_follow": 0.944, "goal_turn_deg": 0.88}, "orca": {"velocity_follow": 0.56, "goal_turn_deg": 4.0}}}))
     curve = {"label": "plain BC", "frames": 256_000, "batch": 128, "references": [
-        {"label": "30,000 steps", "val": str(tmp_path / "30000.json")}],
-        "points": [{"step": s, "val": str(tmp_path / f"{s}.json")} for s in (30000, 60000)]}
+        {"label": "30,000 steps", "val": str(tmp_path / "30000.json")},
+        {"label": "teacher", "probe": str(tmp_path / "probe.json"), "probe_policy": "orca"}],
+        "points": [{"step": 30000, "val": str(tmp_path / "30000.json"), "probe": str(tmp_path / "probe.json"),
+                    "probe_policy": "A"}, {"step": 60000, "val": str(tmp_path / "60000.json")}]}
     lines = table_mod.curve_table(curve).splitlines()
-    assert lines[0] == "| lerobot-train steps | epochs | val SR (%) [95 % CI] | val human CR (%) | val wall CR (%) | val TR (%) |"
-    assert lines[2:] == ["| 30,000 | 15.0 | 20.0 [16.7, 23.7] | 60.0 | 15.0 | 5.0 |",
-                         "| 60,000 | 30.0 | 31.0 [27.1, 35.2] | 60.0 | 15.0 | 5.0 |"]
+    assert lines[0] == ("| lerobot-train steps | epochs | val SR (%) [95 % CI] | val human CR (%) | val wall CR (%) "
+                        "| val TR (%) | velocity follow | goal turn (deg) |")
+    assert lines[2:] == ["| 30,000 | 15.0 | 20.0 [16.7, 23.7] | 60.0 | 15.0 | 5.0 | 0.94 | 0.9 |",
+                         "| 60,000 | 30.0 | 31.0 [27.1, 35.2] | 60.0 | 15.0 | 5.0 | n/a | n/a |"]
     manifest = tmp_path / "m.json"
     manifest.write_text(json.dumps({"rows": [], "curve": curve}))
     table_mod.main([f"--manifest={manifest}", f"--plot={tmp_path / 'fig' / 'c.png'}"])
