@@ -39,7 +39,8 @@ CURVE_HEADER = ["lerobot-train steps", "epochs", "val SR (%) [95 % CI]", "val hu
 class TableConfig:
     # The JSON manifest of the rows and the optional curve (see the module docstring).
     manifest: Path | None = None
-    # Where to draw the manifest's curve (PNG): validation success against epochs, with 95 % intervals.
+    # Where to draw the manifest's curve (PNG): validation success (with its Wilson interval) and the
+    # velocity follow against epochs.
     plot: Path | None = None
 
 
