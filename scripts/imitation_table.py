@@ -44,25 +44,31 @@ class TableConfig:
     plot: Path | None = None
 
 
-def success(path: str) -> tuple[float, float, float]:
-    """Success rate of a metrics file and its 95 % Wilson interval, in %."""
-    m = json.loads(Path(path).read_text())
+def load(path: str) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def success(m: dict) -> tuple[float, float, float]:
+    """Success rate of a metrics file's contents and its 95 % Wilson interval, in %."""
     lo, hi = wilson_interval(round(m["sr"] * m["n_episodes"]), m["n_episodes"])
     return 100 * m["sr"], 100 * lo, 100 * hi
 
 
+def success_text(m: dict) -> str:
+    """``SR [lo, hi]`` in %."""
+    return "{:.1f} [{:.1f}, {:.1f}]".format(*success(m))
+
+
 def success_cell(path: str | None) -> str:
     """``SR [lo, hi]`` of a metrics file, in %."""
-    if not path:
-        return "n/a"
-    return "{:.1f} [{:.1f}, {:.1f}]".format(*success(path))
+    return success_text(load(path)) if path else "n/a"
 
 
 def probe(spec: dict) -> dict | None:
     """The probe's figures of the spec's ``probe_policy``, if the spec names a probe file."""
     if not spec.get("probe"):
         return None
-    return json.loads(Path(spec["probe"]).read_text())["policies"][spec["probe_policy"]]
+    return load(spec["probe"])["policies"][spec["probe_policy"]]
 
 
 def probe_cells(spec: dict) -> list[str]:
@@ -71,7 +77,7 @@ def probe_cells(spec: dict) -> list[str]:
 
 
 def row(spec: dict) -> list[str]:
-    test = json.loads(Path(spec["test"]).read_text())
+    test = load(spec["test"])
     return [spec["label"], success_cell(spec.get("val")), success_cell(spec["test"]),
             *(f"{100 * test[k]:.1f}" for k in ("cr_human", "cr_wall", "tr")), *probe_cells(spec),
             spec.get("cost", "")]
@@ -94,8 +100,8 @@ def curve_table(curve: dict) -> str:
     """Validation success and how the episodes end at each checkpoint of the curve."""
     rows = []
     for point in curve["points"]:
-        m = json.loads(Path(point["val"]).read_text())
-        rows.append([f"{point['step']:,}", f"{epochs(curve, point['step']):.1f}", success_cell(point["val"]),
+        m = load(point["val"])
+        rows.append([f"{point['step']:,}", f"{epochs(curve, point['step']):.1f}", success_text(m),
                      *(f"{100 * m[k]:.1f}" for k in ("cr_human", "cr_wall", "tr")), *probe_cells(point)])
     return markdown(CURVE_HEADER, rows)
 
@@ -110,20 +116,20 @@ def plot_curve(curve: dict, path: Path) -> Path:
 
     points = sorted(curve["points"], key=lambda p: p["step"])
     x = [epochs(curve, p["step"]) for p in points]
-    sr, lo, hi = (list(v) for v in zip(*(success(p["val"]) for p in points), strict=True))
+    sr, lo, hi = (list(v) for v in zip(*(success(load(p["val"])) for p in points), strict=True))
     fig, (ax, ax_v) = plt.subplots(1, 2, figsize=(11, 4), dpi=120)
     ax.errorbar(x, sr, yerr=[[s - l for s, l in zip(sr, lo)], [h - s for s, h in zip(sr, hi)]], marker="o",
                 capsize=3, color="C0", label=curve["label"])
-    probed = [(e, probe(p)["velocity_follow"]) for e, p in zip(x, points) if probe(p) is not None]
+    probed = [(e, pr["velocity_follow"]) for e, pr in zip(x, map(probe, points)) if pr is not None]
     if probed:
         ax_v.plot(*zip(*probed), marker="o", color="C0", label=curve["label"])
     for i, ref in enumerate(curve.get("references", []), start=1):
         if ref.get("val"):
-            r, r_lo, r_hi = success(ref["val"])
+            r, r_lo, r_hi = success(load(ref["val"]))
             ax.axhspan(r_lo, r_hi, color=f"C{i}", alpha=0.15)
             ax.axhline(r, color=f"C{i}", ls="--", label=ref["label"])
-        if probe(ref) is not None:
-            ax_v.axhline(probe(ref)["velocity_follow"], color=f"C{i}", ls="--", label=ref["label"])
+        if (ref_probe := probe(ref)) is not None:
+            ax_v.axhline(ref_probe["velocity_follow"], color=f"C{i}", ls="--", label=ref["label"])
     ax.set_ylabel("validation success (%), BC only")
     ax.set_ylim(0, 100)
     ax_v.set_ylabel("velocity follow (1: copies its velocity)")
@@ -147,7 +153,7 @@ def main(argv: list[str] | None = None) -> None:
     def run(cfg: TableConfig) -> None:
         if cfg.manifest is None or not Path(cfg.manifest).exists():
             raise FileNotFoundError(f"--manifest={cfg.manifest}: no such file")
-        manifest = json.loads(Path(cfg.manifest).read_text())
+        manifest = load(cfg.manifest)
         if cfg.plot is not None and "curve" not in manifest:
             raise ValueError(f"--plot={cfg.plot}: the manifest has no curve to draw")
         blocks = [table(manifest)] if manifest.get("rows") else []
