@@ -121,6 +121,22 @@ def test_generalization_table_from_hand_made_metrics():
             check_crowds(bad)
 
 
+def check_selection(root: Path, task: str, select_dir: str, model: Path, evaluation: str, run: str) -> None:
+    """The main job's checkpoint choice (``select/<select_dir>``): every candidate evaluated on the
+    validation seeds, the best of them shipped in ``model``, evaluated on the test seeds and named
+    on the card."""
+    sel = json.loads((root / "select" / select_dir / "selected.json").read_text())
+    assert (sel["episodes"], sel["split"], sel["chosen"]) == (2, "val", max(
+        sel["candidates"], key=lambda r: (r["val_success_rate"], -r["env_steps"])))
+    for r in sel["candidates"]:
+        m = json.loads((root / "select" / select_dir / f"{r['env_steps']:09d}" / "metrics.json").read_text())
+        assert (m["split"], m["n_episodes"], m["sr"]) == ("val", 2, r["val_success_rate"])
+    chosen = Path(sel["chosen"]["policy"])
+    assert (model / "model.safetensors").read_bytes() == (chosen / "model.safetensors").read_bytes()
+    assert f"--policy.path={chosen}" in json.loads((root / "commands.json").read_text())[f"eval {task} {evaluation}"]
+    assert f"- Checkpoint: the one at {sel['chosen']['env_steps']:,} env steps of {run}" in (model / "README.md").read_text()
+
+
 @pytest.fixture(scope="module")
 def tiny_main(tmp_path_factory) -> Path:
     """The output_root of an uninterrupted tiny main job."""
@@ -156,17 +172,8 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert portable(" ".join(["lerobot-crowdnav-main", *argv])) in card and f"--output_root={tiny_main}" not in card
         assert f"| finetune {task} H=5 seed=1000 | " in card and "| total | " in card
         assert f"| finetune2 {task} H=5 seed=1000 | " in card and "- It continued a fine-tuned checkpoint: " in card
-        # the policy is the checkpoint chosen on the validation seeds (tiny.yaml: ft_select_top 2, 2 episodes)
-        sel = json.loads((root / "select" / f"{task}_h5_s1000" / "selected.json").read_text())
-        assert (sel["episodes"], sel["split"], sel["chosen"]) == (2, "val", max(
-            sel["candidates"], key=lambda r: (r["val_success_rate"], -r["env_steps"])))
-        for r in sel["candidates"]:
-            m = json.loads((root / "select" / f"{task}_h5_s1000" / f"{r['env_steps']:09d}" / "metrics.json").read_text())
-            assert (m["split"], m["n_episodes"], m["sr"]) == ("val", 2, r["val_success_rate"])
-        chosen = Path(sel["chosen"]["policy"])
-        assert (model / "model.safetensors").read_bytes() == (chosen / "model.safetensors").read_bytes()
-        assert f"--policy.path={chosen}" in json.loads((root / "commands.json").read_text())[f"eval {task} pdpo_ft_h5_s1000"]
-        assert f"- Checkpoint: the one at {sel['chosen']['env_steps']:,} env steps of the last fine-tuning stage" in card
+        # the policy is the checkpoint chosen on the validation seeds (tiny.yaml: select_top 2, 2 episodes)
+        check_selection(root, task, f"{task}_h5_s1000", model, "pdpo_ft_h5_s1000", "the last fine-tuning stage")
         assert f"| select {task} H=5 seed=1000 | " in card
         stages_curve = root / "finetune" / f"{task}_h5_s1000_stage2" / "training_curves_stages.png"
         assert (model / "learning_curve.png").read_bytes() == stages_curve.read_bytes()  # both stages on one axis
@@ -182,6 +189,9 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert json.loads((baseline / "config.json").read_text())["type"] == "crowdnavpp"
         assert (baseline / "learning_curve.png").stat().st_size > 5_000
         assert f"| train crowdnavpp {task} seed=1000 | " in (baseline / "README.md").read_text()
+        # CrowdNav++'s checkpoint is chosen on the validation seeds as PDPO's is
+        check_selection(root, task, f"crowdnavpp_{task}_s1000", baseline, "crowdnavpp_s1000", "the PPO run")
+        assert f"| select crowdnavpp {task} seed=1000 | " in (baseline / "README.md").read_text()
         assert "Where `" not in card  # every stage ran on the CPU: the machine line says it all
     commands = json.loads((root / "commands.json").read_text())
     assert commands["pretrain bounded H=5 seed=1000"][0] == "lerobot-train"
@@ -289,7 +299,7 @@ def test_the_checkpoint_choice_is_made_again_when_its_settings_change(tiny_main,
     stage, before = select()
     assert stage.wall_time_s is None and (before["top"], before["episodes"]) == (2, 2)
     evaluated = {p: p.stat().st_mtime_ns for p in (tmp_path / "tiny" / "select").rglob("metrics.json")}
-    stage, after = select("--ft_select_top=1")
+    stage, after = select("--select_top=1")
     assert stage.wall_time_s is not None and after["top"] == 1
     def scores(rows):
         return [(r["env_steps"], r["reading"], r["val_success_rate"]) for r in rows]

@@ -307,7 +307,7 @@ def _provenance(ev: Evaluated, label: str, cmd) -> list[str]:
             notes.append(made + f"checkpoint `best` = {best['env_steps']:,} env steps (validation SR "
                          f"{100 * best['val/success_rate']:.0f} %)"
                          + (f": no validation beat the {start} weights, so they are the best" if best["env_steps"] == 0 else ""))
-        else:  # a numbered checkpoint: the main job's choice on the validation seeds (--ft_select_top)
+        else:  # a numbered checkpoint: the main job's choice on the validation seeds (--select_top)
             notes.append(made + f"checkpoint at {int(ev.checkpoint.parent.name):,} env steps, chosen on the validation "
                          "seeds (the run's select stage)")
     return notes

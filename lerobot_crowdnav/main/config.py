@@ -74,14 +74,14 @@ class MainConfig:
     ft2_env_steps: int = 0
     # Flags of the second stage only, after ft_args (later flags win).
     ft2_args: list[str] = field(default_factory=list)
-    # Which checkpoint of the last diffusion-PPO stage is the policy. 0: the trainer's `best`, the
-    # best ft_val_episodes-episode validation reading (the paper's; 100 episodes read +-9 points, too
-    # coarse to rank a plateau's checkpoints). k > 0: the k saved checkpoints with the best readings
-    # (ties: the earlier) each run again on the first ft_select_episodes validation seeds, and the
-    # best of those (ties: the earlier) is the policy; the test seeds never take part.
-    ft_select_top: int = 0
-    # Validation episodes per candidate checkpoint (with ft_select_top > 0).
-    ft_select_episodes: int = 1000
+    # Which checkpoint of an RL run is the policy (PDPO's last diffusion-PPO stage, CrowdNav++'s PPO
+    # run). 0: the trainer's `best`, the best validation reading (the paper's; 100 episodes read +-9
+    # points, too coarse to rank a plateau's checkpoints). k > 0: the k saved checkpoints with the
+    # best readings (ties: the earlier) each run again on the first select_episodes validation seeds,
+    # and the best of those (ties: the earlier) is the policy; the test seeds never take part.
+    select_top: int = 0
+    # Validation episodes per candidate checkpoint (with select_top > 0).
+    select_episodes: int = 1000
     # The CrowdNav++ (Const. Vel.) baseline: PPO env steps per task of CrowdNav++'s network trained
     # from scratch by lerobot-crowdnav-train-ppo with the reference's PPO settings (reference: 10 M;
     # docs/crowdnavpp.md); 0 = no CrowdNav++ row.
@@ -117,11 +117,11 @@ class MainConfig:
         check_crowds(self.crowds, allow_empty=True)
         if any(h < 1 for h in self.horizons):
             raise ValueError(f"--horizons must be positive, got {self.horizons}")
-        if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0 or self.ft_select_top < 0:
-            raise ValueError("--crowdnavpp_env_steps, --ft2_env_steps and --ft_select_top must be >= 0")
+        if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0 or self.select_top < 0:
+            raise ValueError("--crowdnavpp_env_steps, --ft2_env_steps and --select_top must be >= 0")
         val_size = SEED_SPLITS["val"][1] - SEED_SPLITS["val"][0]
-        if not 1 <= self.ft_select_episodes <= val_size:
-            raise ValueError(f"--ft_select_episodes must be in [1, {val_size}] (the validation seeds), got {self.ft_select_episodes}")
+        if not 1 <= self.select_episodes <= val_size:
+            raise ValueError(f"--select_episodes must be in [1, {val_size}] (the validation seeds), got {self.select_episodes}")
         if self.models is None and not self.horizons and not self.crowdnavpp_env_steps:
             raise ValueError("nothing to train: give --horizons (PDPO) and/or --crowdnavpp_env_steps (CrowdNav++)")
         if not self.seeds:

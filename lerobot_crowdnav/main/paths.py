@@ -8,6 +8,8 @@
         finetune/<task>_h<H>_s<seed>/  diffusion-PPO runs (checkpoints/best/pretrained_model); with
                                        --ft2_env_steps, <...>_stage2/ continues from its best
         crowdnavpp/<task>_s<seed>/     CrowdNav++ PPO runs (checkpoints/best/pretrained_model)
+        select/<task>_h<H>_s<seed>/    with --select_top, the checkpoint choice on the validation
+        select/crowdnavpp_<task>_s<seed>/  seeds: each candidate's metrics.json, selected.json
         eval/<task>/<method>/          metrics.json (+ a GIF of the first test episode)
         eval/<task>/<method>_<crowd>/  the same under another crowd (--crowds: reactive_orca,
                                        social_force, reactive_social_force), no GIF
@@ -72,12 +74,12 @@ class RunPaths:
     def finetune_dir(self, task: str, h: int, seed: int, stage: int = 1) -> Path:
         return self.root / "finetune" / (f"{SHORT[task]}_h{h}_s{seed}" + ("" if stage == 1 else f"_stage{stage}"))
 
-    def select_dir(self, task: str, h: int, seed: int) -> Path:
-        """The checkpoint choice of a PDPO policy (``--ft_select_top``): each candidate's
-        validation metrics and ``selected.json``."""
-        return self.root / "select" / f"{SHORT[task]}_h{h}_s{seed}"
+    def select_dir(self, task: str, h: int | None, seed: int) -> Path:
+        """The checkpoint choice of a PDPO policy, or with ``h=None`` of a CrowdNav++ run
+        (``--select_top``): each candidate's validation metrics and ``selected.json``."""
+        return self.root / "select" / (f"{SHORT[task]}_h{h}_s{seed}" if h is not None else f"crowdnavpp_{SHORT[task]}_s{seed}")
 
-    def selected_file(self, task: str, h: int, seed: int) -> Path:
+    def selected_file(self, task: str, h: int | None, seed: int) -> Path:
         return self.select_dir(task, h, seed) / "selected.json"
 
     def crowdnavpp_dir(self, task: str, seed: int) -> Path:
@@ -106,8 +108,8 @@ def finetune_stage(task: str, h: int, seed: int, stage: int) -> str:
     return f"finetune{'' if stage == 1 else stage} {SHORT[task]} H={h} seed={seed}"
 
 
-def select_stage(task: str, h: int, seed: int) -> str:
-    return f"select {SHORT[task]} H={h} seed={seed}"
+def select_stage(task: str, h: int | None, seed: int) -> str:
+    return f"select {SHORT[task]} H={h} seed={seed}" if h is not None else f"select crowdnavpp {SHORT[task]} seed={seed}"
 
 
 def crowdnavpp_stage(task: str, seed: int) -> str:

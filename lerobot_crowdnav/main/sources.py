@@ -134,10 +134,12 @@ class TrainedFromScratch(Source):
             for h in c.horizons:
                 pretrain = t.pretrain(task, h, seed)
                 trained[h, seed] = (pretrain, [t.finetune(task, h, seed, n) for n in t.ft_stages][-1])
-                if c.ft_select_top:
+                if c.select_top:
                     t.select(task, h, seed)
             if c.crowdnavpp_env_steps:
                 crowdnavpp[seed] = t.train_crowdnavpp(task, seed)
+                if c.select_top:
+                    t.select(task, None, seed)
         rows = []
         h0 = t.main_horizon
         if h0 is not None:

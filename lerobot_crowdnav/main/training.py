@@ -191,30 +191,38 @@ class Training:
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         return self.runner.run(finetune_stage(task, h, seed, stage), argv, done, lambda: finetune_main(argv[1:] + resume))
 
-    def select(self, task: str, h: int, seed: int) -> Stage:
-        """The policy's checkpoint, chosen on the validation seeds (``--ft_select_top``): the last
-        stage's best-read checkpoints each on ``ft_select_episodes`` episodes, the best of them
-        (ties: the earlier) written to ``selected.json``. Each candidate's evaluation resumes alone;
-        the choice is made again when the stage ran further or the selection settings changed."""
+    def rl_run(self, task: str, h: int | None, seed: int) -> tuple[Path, str]:
+        """The RL run a policy's checkpoint is chosen from, and its settings file: PDPO's last
+        diffusion-PPO stage, or with ``h=None`` the CrowdNav++ PPO run."""
+        if h is None:
+            return self.paths.crowdnavpp_dir(task, seed), TRAIN_PPO_CONFIG
+        return self.paths.finetune_dir(task, h, seed, self.ft_stages[-1]), FINETUNE_CONFIG
+
+    def select(self, task: str, h: int | None, seed: int) -> Stage:
+        """The policy's checkpoint, chosen on the validation seeds (``--select_top``): its RL run's
+        best-read checkpoints each on ``select_episodes`` episodes, the best of them (ties: the
+        earlier) written to ``selected.json``. ``h=None``: the CrowdNav++ run. Each candidate's
+        evaluation resumes alone; the choice is made again when the run went further or the
+        selection settings changed."""
         from ..evaluation.eval import main as eval_main
 
         c = self.cfg
         out = self.paths.select_dir(task, h, seed)
-        run_dir = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1])
-        made_from = {"top": c.ft_select_top, "episodes": c.ft_select_episodes,
-                     "env_steps_done": env_steps_done(run_dir / "checkpoints" / "last")}
+        run_dir, settings = self.rl_run(task, h, seed)
+        made_from = {"top": c.select_top, "episodes": c.select_episodes,
+                     "env_steps_done": env_steps_done(run_dir / "checkpoints" / "last", settings)}
         selected = self.paths.selected_file(task, h, seed)
         done = selected.exists() and all(json.loads(selected.read_text()).get(k) == v for k, v in made_from.items())
-        flags = [*self._env_flags(task), f"--eval.n_episodes={c.ft_select_episodes}", "--eval.split=val",
-                 f"--eval.batch_size={min(256, c.ft_select_episodes)}", "--overwrite=true",
+        flags = [*self._env_flags(task), f"--eval.n_episodes={c.select_episodes}", "--eval.split=val",
+                 f"--eval.batch_size={min(256, c.select_episodes)}", "--overwrite=true",
                  *([f"--policy.device={self.device}"] if self.device else [])]
         argv = ["lerobot-crowdnav-eval", "--policy.path=<each candidate>", *flags, f"--output_dir={out}/<env steps>"]
 
         def run() -> None:
             results = []
-            for steps, reading, path in select_candidates(run_dir, c.ft_select_top):
+            for steps, reading, path in select_candidates(run_dir, c.select_top):
                 metrics = out / f"{steps:09d}" / "metrics.json"
-                if not metrics.exists() or json.loads(metrics.read_text())["n_episodes"] != c.ft_select_episodes:
+                if not metrics.exists() or json.loads(metrics.read_text())["n_episodes"] != c.select_episodes:
                     eval_main([f"--policy.path={path}", *flags, f"--output_dir={metrics.parent}"])
                 results.append({"env_steps": steps, "reading": reading, "policy": str(path),
                                 "val_success_rate": json.loads(metrics.read_text())["sr"]})
@@ -245,17 +253,19 @@ class Training:
         path = self.paths.train_dir(task, h, seed) / "checkpoints" / "last" / PRETRAINED_MODEL
         return Evaluation(f"pdpo_bc_h{h}_s{seed}", path, h, seed, pretrain=pretrain)
 
+    def chosen(self, task: str, h: int | None, seed: int) -> Path:
+        """The policy of an RL run (``h=None``: CrowdNav++'s): its ``best`` checkpoint, or the one
+        ``select`` chose."""
+        if self.cfg.select_top:
+            return Path(json.loads(self.paths.selected_file(task, h, seed).read_text())["chosen"]["policy"])
+        return self.rl_run(task, h, seed)[0] / "checkpoints" / "best" / PRETRAINED_MODEL
+
     def finetuned(self, task: str, h: int, seed: int, pretrain: Stage | None = None,
                   finetune: Stage | None = None) -> Evaluation:
-        """The policy: its final diffusion-PPO stage's ``best`` checkpoint, or the one ``select`` chose."""
-        path = self.paths.finetune_dir(task, h, seed, self.ft_stages[-1]) / "checkpoints" / "best" / PRETRAINED_MODEL
-        if self.cfg.ft_select_top:
-            path = Path(json.loads(self.paths.selected_file(task, h, seed).read_text())["chosen"]["policy"])
-        return Evaluation(f"pdpo_ft_h{h}_s{seed}", path, h, seed, pretrain=pretrain, finetune=finetune)
+        return Evaluation(f"pdpo_ft_h{h}_s{seed}", self.chosen(task, h, seed), h, seed, pretrain=pretrain, finetune=finetune)
 
     def crowdnavpp(self, task: str, seed: int, stage: Stage | None = None) -> Evaluation:
-        return Evaluation(f"crowdnavpp_s{seed}", self.paths.crowdnavpp_dir(task, seed) / "checkpoints" / "best" / PRETRAINED_MODEL,
-                          seed=seed, finetune=stage)
+        return Evaluation(f"crowdnavpp_s{seed}", self.chosen(task, None, seed), seed=seed, finetune=stage)
 
     def finetune_curve(self, task: str, h: int, seed: int) -> Path:
         """A policy's fine-tuning curve for its card: the trainer's own with one stage, every stage
@@ -299,24 +309,26 @@ class Training:
                               functools.partial(self.finetune_curve, task, h, seed),
                               [collect_stage(task), pretrain_stage(task, h, seed),
                                *(finetune_stage(task, h, seed, n) for n in self.ft_stages),
-                               *([select_stage(task, h, seed)] if self.cfg.ft_select_top else [])],
+                               *([select_stage(task, h, seed)] if self.cfg.select_top else [])],
                               {finetune_stage(task, h, seed, n): self.paths.finetune_dir(task, h, seed, n)
                                for n in self.ft_stages},
                               self.selection_line(task, h, seed))
         if self.cfg.crowdnavpp_env_steps:
             self._push_policy(task, self.crowdnavpp(task, seed), f"crowdnavpp_{short}",
                               lambda: self.paths.crowdnavpp_dir(task, seed) / "training_curves.png",
-                              [crowdnavpp_stage(task, seed)],
-                              {crowdnavpp_stage(task, seed): self.paths.crowdnavpp_dir(task, seed)})
+                              [crowdnavpp_stage(task, seed), *([select_stage(task, None, seed)] if self.cfg.select_top else [])],
+                              {crowdnavpp_stage(task, seed): self.paths.crowdnavpp_dir(task, seed)},
+                              self.selection_line(task, None, seed))
 
-    def selection_line(self, task: str, h: int, seed: int) -> str | None:
+    def selection_line(self, task: str, h: int | None, seed: int) -> str | None:
         """The card's sentence on how ``select`` chose the checkpoint (None without a selection)."""
-        if not self.cfg.ft_select_top:
+        if not self.cfg.select_top:
             return None
         sel = json.loads(self.paths.selected_file(task, h, seed).read_text())
         chosen = sel["chosen"]
         others = "".join(f"; {100 * r['val_success_rate']:.1f} % at {r['env_steps']:,}" for r in sel["candidates"] if r != chosen)
-        return (f"- Checkpoint: the one at {chosen['env_steps']:,} env steps of the last fine-tuning stage, chosen among "
+        run = "the last fine-tuning stage" if h is not None else "the PPO run"
+        return (f"- Checkpoint: the one at {chosen['env_steps']:,} env steps of {run}, chosen among "
                 f"its {len(sel['candidates'])} checkpoints with the best validation readings by {sel['episodes']:,} "
                 f"validation episodes each ({100 * chosen['val_success_rate']:.1f} %{others}).")
 
