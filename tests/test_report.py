@@ -316,8 +316,9 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
     shutil.rmtree(shipped / "pdpo_original_h1")
     shutil.rmtree(shipped / "crowdnavpp_bounded")
     out = tmp_path / "out"
+    # the trained crowd only (shipped models under other crowds: test_shipped_models_under_other_crowds_*)
     pipeline_main([f"--models={shipped}", f"--output_root={out}", "--run=shipped", "--test_episodes=4",
-                   "--figure_steps=[0,2]", "--figure_samples=4"])
+                   "--figure_steps=[0,2]", "--figure_samples=4", "--crowds=[orca]"])
     root = out / "shipped"
     assert sorted(p.name for p in root.iterdir()) == ["commands.json", "eval", "figures", "main_config.json", "report.md",
                                                        "stage_times.json", "tables"]  # nothing trained, nothing pushed
@@ -345,7 +346,7 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
     shutil.rmtree(shipped / "pdpo_bounded_h5")
     shutil.copytree(shipped / "pdpo_original_h5", shipped / "pdpo_bounded_h5")
     argv = [f"--models={shipped}", f"--output_root={out}", "--run=shipped", "--test_episodes=4", "--figure_steps=[0,2]",
-            "--figure_samples=4", "--tasks=[BoundedCrowdNav-v0]"]
+            "--figure_samples=4", "--tasks=[BoundedCrowdNav-v0]", "--crowds=[orca]"]
     pipeline_main(argv)
     after = {r["method"]: r for r in csv.DictReader(io.StringIO((root / "tables" / "results_bounded.csv").read_text()))}
     old = {r["method"]: r for r in csv.DictReader(io.StringIO(before))}
@@ -358,10 +359,23 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
 
 
 def test_main_job_killed_mid_stage_reruns_to_the_same_tables(tiny_main, tmp_path):
-    """Killed writing the first fine-tuning's checkpoint (no last yet: the rerun restarts that stage
-    with --resume=true); the rerun completes and its tables equal the uninterrupted run's. More
-    points: tests/fault_injection.py (as a script)."""
-    assert fi.main_case(tmp_path, "finetune.checkpoint_writing", 1, tiny_main) == []
+    """A run whose Bounded H = 5 policy is still to make, killed writing its first fine-tuning
+    checkpoint (no last yet: the rerun restarts that stage with --resume=true): the rerun skips the
+    complete stages, makes that policy (fine-tuning, choice, evaluations, push), and its tables and
+    weights equal the uninterrupted run's. The whole job killed at more points:
+    tests/fault_injection.py (as a script)."""
+    run = tmp_path / "tiny"
+    shutil.copytree(tiny_main / "tiny", run, symlinks=True)
+    for rel in ("finetune/bounded_h5_s1000", "finetune/bounded_h5_s1000_stage2", "select/bounded_h5_s1000",
+                "eval/bounded/pdpo_ft_h5_s1000", "eval/bounded/pdpo_ft_h5_s1000_reactive_social_force",
+                "hub/models/local/pdpo_bounded_h5", "tables"):
+        shutil.rmtree(run / rel)
+    fi.run_killed(["-m", "lerobot_crowdnav.pipeline", *fi.main_argv(tmp_path)], "finetune.checkpoint_writing", 1)
+    assert (run / "finetune/bounded_h5_s1000").is_dir() and not (run / "finetune/bounded_h5_s1000/checkpoints/last").exists()
+    pipeline_main(fi.main_argv(tmp_path))
+    assert fi.report_tables(tmp_path) == fi.report_tables(tiny_main)
+    weights = "hub/models/local/pdpo_bounded_h5/model.safetensors"
+    assert (run / weights).read_bytes() == (tiny_main / "tiny" / weights).read_bytes()
 
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
