@@ -12,8 +12,10 @@ reference's reward curve ``docs/data/crowdnavpp_reference_reward.csv``, and writ
   success (every validation) and training success (per window);
 * a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
   reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
-  run's training success, the latest validation success in the window, and the run's cumulative
-  training wall time (``time/wall_s``) at the window's last iteration.
+  run's training success, the latest validation success in the window (with its 95 % Wilson
+  interval over the run's ``val.n_episodes``, read from its last checkpoint's
+  ``train_ppo_config.json``), and the run's cumulative training wall time (``time/wall_s``) at the
+  window's last iteration.
 
 Windows are ``[k W, (k + 1) W)`` for W = ``--window`` env steps, an iteration or a log line
 belonging to the window of the env-step count it reports (the count at its end). The run's
@@ -41,14 +43,16 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from lerobot_crowdnav.checkpoint_files import PRETRAINED_MODEL, TRAIN_PPO_CONFIG
 from lerobot_crowdnav.cli import run_cli
+from lerobot_crowdnav.measure.metrics import wilson_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
 DEFAULT_PNG = ROOT / "docs" / "figures" / "crowdnavpp_bounded_curve.png"
 REFERENCE_COLUMNS = ("eprewmean_rand", "eprewmean_non_rand")
 HEADER = ["env steps (window)", "train reward", "reference reward, rand", "reference reward, non-rand",
-          "train success (%)", "validation success (%) [at env steps]", "wall time (h, cumulative)"]
+          "train success (%)", "validation success (%) [95 % CI] at env steps", "wall time (h, cumulative)"]
 
 
 @dataclass
@@ -189,12 +193,29 @@ def _num(x: float, fmt: str) -> str:
     return "n/a" if x is None or math.isnan(x) else format(x, fmt)
 
 
-def table(windows: list[Window], reference: dict[str, dict[int, float]], window: int) -> str:
+def _interval(rate: float, n: int | None) -> str:
+    if not n:
+        return ""
+    lo, hi = wilson_interval(round(rate * n), n)
+    return f" [{100 * lo:.0f}, {100 * hi:.0f}]"
+
+
+def val_episodes(run: Path) -> int | None:
+    """The run's validation episodes per reading, from its last checkpoint's settings (None
+    without one)."""
+    settings = run / "checkpoints" / "last" / PRETRAINED_MODEL / TRAIN_PPO_CONFIG
+    return json.loads(settings.read_text())["val"]["n_episodes"] if settings.exists() else None
+
+
+def table(windows: list[Window], reference: dict[str, dict[int, float]], window: int,
+          val_episodes: int | None = None) -> str:
+    """The markdown table; each validation success with its Wilson interval when the number of
+    validation episodes is known."""
     lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
     for w in windows:
         end = (w.k + 1) * window if w.complete else w.last_step
         span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
-        val = "" if w.val_step is None else f"{100 * w.val_success:.0f} [{w.val_step:,}]"
+        val = "" if w.val_step is None else f"{100 * w.val_success:.0f}{_interval(w.val_success, val_episodes)} at {w.val_step:,}"
         cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REFERENCE_COLUMNS),
                  _num(100 * w.success, ".1f"), val, _num(w.wall_s / 3600, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
@@ -273,7 +294,7 @@ def curve(cfg: CurveConfig) -> str | None:
         raise ValueError(f"{progress}: no progress lines")
     windows = run_windows(rows, cfg.window)
     reference = read_reference(Path(cfg.reference), cfg.window)
-    text = table(windows, reference, cfg.window)
+    text = table(windows, reference, cfg.window, val_episodes(Path(cfg.run)))
     print(text)
     if cfg.output_md:
         Path(cfg.output_md).parent.mkdir(parents=True, exist_ok=True)

@@ -127,12 +127,15 @@ def test_committed_reference_csv_is_the_reduction_of_the_reference_logs():
 def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
     out = tmp_path / "ref.csv"
     curve_mod.write_reference(write_log(tmp_path / "r.csv", RAND), write_log(tmp_path / "n.csv", NON_RAND), out, W)
-    text = curve_mod.table(curve_mod.run_windows(PROGRESS, W), curve_mod.read_reference(out, W), W)
-    lines = text.splitlines()
+    windows, reference = curve_mod.run_windows(PROGRESS, W), curve_mod.read_reference(out, W)
+    lines = curve_mod.table(windows, reference, W).splitlines()
     assert lines[0] == "| " + " | ".join(curve_mod.HEADER) + " |" and len(lines) == 5
-    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 25 [800] | 0.02 |"
+    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 25 at 800 | 0.02 |"
     assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 |  | 0.05 |"
-    assert lines[4] == "| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 50 [2,200] | 0.06 |"
+    assert lines[4] == "| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 50 at 2,200 | 0.06 |"
+    # with the run's validation episodes known, each reading gets its 95 % Wilson interval
+    lines = curve_mod.table(windows, reference, W, val_episodes=100).splitlines()
+    assert lines[2].endswith("| 25 [18, 34] at 800 | 0.02 |") and lines[4].endswith("| 50 [40, 60] at 2,200 | 0.06 |")
 
 
 def test_cli_writes_figure_and_table(tmp_path, capsys):
@@ -144,6 +147,12 @@ def test_cli_writes_figure_and_table(tmp_path, capsys):
     printed = capsys.readouterr().out
     table = md.read_text()
     assert table.strip() in printed and table.count("\n") == 5 and "(so far)" in table
+    assert "| 25 at 800 |" in table  # no checkpoint yet: the validation episodes are unknown
+    settings = run / "checkpoints" / "last" / "pretrained_model" / "train_ppo_config.json"
+    settings.parent.mkdir(parents=True)
+    settings.write_text(json.dumps({"val": {"n_episodes": 100}}))
+    curve_mod.main([f"--run={run}", f"--reference={ref}", "--output_png=null", f"--output_md={md}", f"--window={W}"])
+    assert "| 25 [18, 34] at 800 |" in md.read_text()
     with Image.open(png) as im:
         assert im.format == "PNG" and im.size[0] > 500 and im.size[1] > 400
     # Without a figure, and the errors a user can make, as one-line messages.
