@@ -9,7 +9,8 @@ reference's reward curve ``docs/data/crowdnavpp_reference_reward.csv``, and writ
 
 * a PNG (``--output_png``): the mean training episode reward per window of ``--window`` env steps
   for the run and for the reference's two logged trainings, and below it the run's validation
-  success (every validation) and training success (per window);
+  success (every validation, with its 95 % Wilson interval when known, as in the table) and
+  training success (per window);
 * a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
   reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
   run's training success, the latest validation success in the window (with its 95 % Wilson
@@ -223,7 +224,7 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
 
 
 def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[int, float]], window: int,
-           out: Path, x_max: int, title: str) -> None:
+           out: Path, x_max: int, title: str, val_episodes: int | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -250,8 +251,14 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     top.grid(alpha=0.3)
     top.legend(fontsize=8, loc="lower right")
 
-    val = [(int(r["env_steps"]), 100 * r["val/success_rate"]) for r in rows if r.get("val/success_rate") is not None]
-    bottom.plot([s for s, _ in val], [v for _, v in val], "s-", color="tab:green", label="validation success")
+    val = [(int(r["env_steps"]), r["val/success_rate"]) for r in rows if r.get("val/success_rate") is not None]
+    ys = [100 * v for _, v in val]
+    if val_episodes:  # 95 % Wilson intervals
+        bounds = [wilson_interval(round(v * val_episodes), val_episodes) for _, v in val]
+        err = [[y - 100 * lo for y, (lo, _) in zip(ys, bounds, strict=True)],
+               [100 * hi - y for y, (_, hi) in zip(ys, bounds, strict=True)]]
+    bottom.errorbar([s for s, _ in val], ys, yerr=err if val_episodes else None, fmt="s-", color="tab:green",
+                    capsize=2, label="validation success" + (f" ({val_episodes} episodes, 95 % CI)" if val_episodes else ""))
     bottom.plot([centre[w.k] for w in done], [100 * w.success for w in done], "o-", color="tab:orange",
                 label="training success (per window)")
     if partial:
@@ -294,7 +301,8 @@ def curve(cfg: CurveConfig) -> str | None:
         raise ValueError(f"{progress}: no progress lines")
     windows = run_windows(rows, cfg.window)
     reference = read_reference(Path(cfg.reference), cfg.window)
-    text = table(windows, reference, cfg.window, val_episodes(Path(cfg.run)))
+    episodes = val_episodes(Path(cfg.run))
+    text = table(windows, reference, cfg.window, episodes)
     print(text)
     if cfg.output_md:
         Path(cfg.output_md).parent.mkdir(parents=True, exist_ok=True)
@@ -304,7 +312,7 @@ def curve(cfg: CurveConfig) -> str | None:
         walls = [r["time/wall_s"] for r in rows if r.get("time/wall_s") is not None]
         title = cfg.title or (f"{Path(cfg.run).resolve().name}: {int(last['env_steps']):,} env steps"
                               + (f", {max(walls) / 3600:.1f} h of training" if walls else ""))
-        figure(windows, rows, reference, cfg.window, Path(cfg.output_png), cfg.x_max, title)
+        figure(windows, rows, reference, cfg.window, Path(cfg.output_png), cfg.x_max, title, episodes)
     return text
 
 

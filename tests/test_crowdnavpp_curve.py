@@ -151,8 +151,9 @@ def test_cli_writes_figure_and_table(tmp_path, capsys):
     settings = run / "checkpoints" / "last" / "pretrained_model" / "train_ppo_config.json"
     settings.parent.mkdir(parents=True)
     settings.write_text(json.dumps({"val": {"n_episodes": 100}}))
-    curve_mod.main([f"--run={run}", f"--reference={ref}", "--output_png=null", f"--output_md={md}", f"--window={W}"])
-    assert "| 25 [18, 34] at 800 |" in md.read_text()
+    png.unlink()
+    curve_mod.main([f"--run={run}", f"--reference={ref}", f"--output_png={png}", f"--output_md={md}", f"--window={W}"])
+    assert "| 25 [18, 34] at 800 |" in md.read_text() and png.stat().st_size > 5_000  # with error bars
     with Image.open(png) as im:
         assert im.format == "PNG" and im.size[0] > 500 and im.size[1] > 400
     # Without a figure, and the errors a user can make, as one-line messages.
