@@ -46,7 +46,7 @@ from pathlib import Path
 
 from lerobot_crowdnav.checkpoint_files import PRETRAINED_MODEL, TRAIN_PPO_CONFIG
 from lerobot_crowdnav.cli import run_cli
-from lerobot_crowdnav.measure.metrics import wilson_interval
+from lerobot_crowdnav.measure.metrics import rate_interval
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
@@ -197,7 +197,7 @@ def _num(x: float, fmt: str) -> str:
 def _interval(rate: float, n: int | None) -> str:
     if not n:
         return ""
-    lo, hi = wilson_interval(round(rate * n), n)
+    lo, hi = rate_interval(rate, n)
     return f" [{100 * lo:.0f}, {100 * hi:.0f}]"
 
 
@@ -254,7 +254,7 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     val = [(int(r["env_steps"]), r["val/success_rate"]) for r in rows if r.get("val/success_rate") is not None]
     ys = [100 * v for _, v in val]
     if val_episodes:  # 95 % Wilson intervals
-        bounds = [wilson_interval(round(v * val_episodes), val_episodes) for _, v in val]
+        bounds = [rate_interval(v, val_episodes) for _, v in val]
         err = [[y - 100 * lo for y, (lo, _) in zip(ys, bounds, strict=True)],
                [100 * hi - y for y, (_, hi) in zip(ys, bounds, strict=True)]]
     bottom.errorbar([s for s, _ in val], ys, yerr=err if val_episodes else None, fmt="s-", color="tab:green",

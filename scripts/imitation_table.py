@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot_crowdnav.cli import run_cli
-from lerobot_crowdnav.measure.metrics import wilson_interval
+from lerobot_crowdnav.measure.metrics import rate_interval
 
 HEADER = ["remedy", "val SR (%) [95 % CI]", "test SR (%) [95 % CI]", "test human CR (%)", "test wall CR (%)",
           "test TR (%)", "velocity follow", "goal turn (deg)", "pretraining cost"]
@@ -50,7 +50,7 @@ def load(path: str) -> dict:
 
 def success(m: dict) -> tuple[float, float, float]:
     """Success rate of a metrics file's contents and its 95 % Wilson interval, in %."""
-    lo, hi = wilson_interval(round(m["sr"] * m["n_episodes"]), m["n_episodes"])
+    lo, hi = rate_interval(m["sr"], m["n_episodes"])
     return 100 * m["sr"], 100 * lo, 100 * hi
 
 

@@ -94,6 +94,12 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def rate_interval(rate: float, n: int) -> tuple[float, float]:
+    """The 95 % Wilson interval of a success rate read on ``n`` episodes (a metrics file's or a
+    progress record's ``sr``, which keeps the rate, not the count)."""
+    return wilson_interval(round(rate * n), n)
+
+
 def _mean(values) -> float:
     values = list(values)
     return sum(values) / len(values) if values else math.nan
