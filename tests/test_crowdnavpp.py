@@ -374,7 +374,7 @@ def test_tiny_training_run_writes_a_checkpoint_that_loads_and_evaluates(tmp_path
 
     card = str(policy_card(path, "local/crowdnavpp"))
     assert "2,502,021 trainable" in card and "2,502,535" in card and "paper: 2.503 M" in card
-    assert "PPO from scratch for 240 environment steps" in card
+    assert "PPO from scratch for 240 environment steps (this checkpoint; the run's budget: 240)" in card
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", "--env.preset=crowdnavpp",
                f"--output_dir={tmp_path / 'eval'}"])
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2

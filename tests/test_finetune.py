@@ -199,6 +199,8 @@ def test_ddim_fine_tuning_scores_its_own_chains(pretrained, tmp_path):
     assert PDPOPolicy.from_pretrained(path).config.ddim_steps == 5
     card = str(policy_card(path, "local/ddim"))  # the card says how the policy samples and what was trained
     assert "sampled by DDIM in 5" in card and "all 5 denoising steps trained" in card and "DDPM" not in card
+    done = json.loads((path / "finetune_config.json").read_text())["env_steps_done"]
+    assert f"for {done:,} environment steps (this checkpoint; the stage's budget: 32)" in card
     with pytest.raises(ValueError, match="ddim_steps"):
         load_agent(path, DiffusionPPOConfig(ft_denoising_steps=5), seed=3)
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", f"--output_dir={tmp_path / 'eval'}"])

@@ -291,3 +291,23 @@ def test_a_sampling_stream_saved_on_another_device_type_continues_from_a_seed_de
     cuda_like = {**state, "torch": list(range(16))}
     assert torch.equal(loaded(cuda_like), loaded(cuda_like))
     assert not torch.equal(loaded(cuda_like), loaded({**state, "torch": list(range(1, 17))}))
+
+
+def test_training_mode_survives_env_flags_and_the_intrusion_test_may_change_on_resume():
+    """Both PPO CLIs train with the intrusion test off even when an --env.* flag is given (draccus
+    then builds ``env`` from its type's defaults), and switching it is no conflict on resume: it
+    changes the metrics only."""
+    import draccus
+
+    from lerobot_crowdnav.rl.checkpoints import resume_conflicts
+    from lerobot_crowdnav.rl.finetune import FinetuneConfig
+    from lerobot_crowdnav.rl.train_ppo import TrainPPOConfig
+
+    for cls in (FinetuneConfig, TrainPPOConfig):
+        for args in ([], ["--env.task=CrowdNav-v0"], ["--env.preset=crowdnavpp", "--env.num_humans=10"]):
+            assert draccus.parse(cls, args=args).env.compute_intrusion is False
+        assert draccus.parse(cls, args=["--env.compute_intrusion=true"]).env.compute_intrusion is True
+    saved = {"env": {"task": "CrowdNav-v0", "compute_intrusion": True}, "seed": 1}
+    now = {"env": {"task": "CrowdNav-v0", "compute_intrusion": False}, "seed": 1}
+    assert resume_conflicts(saved, now, 1) == []
+    assert resume_conflicts(saved, {**now, "env": {**now["env"], "task": "BoundedCrowdNav-v0"}}, 1) == ["env"]

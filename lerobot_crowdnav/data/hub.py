@@ -121,6 +121,12 @@ def evaluation_lines(metrics: dict | None) -> list[str]:
                     markdown_row(row, bounded)]
 
 
+def run_steps(run: dict, what: str) -> str:
+    """How far this checkpoint's PPO run got, beside its budget (a chosen checkpoint may be early)."""
+    return (f"for {run['env_steps_done']:,} environment steps (this checkpoint; the {what}'s budget: "
+            f"{run['env_steps']:,}) in `{run['env']['task']}` ({run['env']['preset']} preset)")
+
+
 def best_checkpoint_lines(pretrained: Path, recipe: dict | None = None) -> list[str]:
     """Why these weights: how the main job chose them (``recipe["checkpoint"]``), or a PPO run's
     ``checkpoints/best``, which has ``best.json`` beside it."""
@@ -248,8 +254,7 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
         ppo = finetune["ppo"]
         chain = config.get("ddim_steps") or config.get("num_diffusion_steps")  # reverse steps per sample
         lines += [
-            f"- Fine-tuning: diffusion PPO (DPPO) for {finetune['env_steps_done']} environment steps in "
-            f"`{finetune['env']['task']}` ({finetune['env']['preset']} preset), {finetune['num_envs']} envs x "
+            f"- Fine-tuning: diffusion PPO (DPPO) {run_steps(finetune, 'stage')}, {finetune['num_envs']} envs x "
             f"{finetune['world_size']} process(es), seed {finetune['seed']}: "
             + (f"all {chain} denoising steps trained" if ppo["ft_denoising_steps"] >= chain else
                f"the last {ppo['ft_denoising_steps']} of {chain} denoising steps trained (a frozen copy of the "
@@ -336,8 +341,7 @@ def crowdnavpp_card(pretrained: Path, repo_id: str, config: dict, metrics: dict 
     if run:
         ppo = run["ppo"]
         lines.append(
-            f"- PPO from scratch for {run['env_steps_done']} environment steps in `{run['env']['task']}` "
-            f"({run['env']['preset']} preset), {run['num_envs']} envs x {run['world_size']} process(es), seed "
+            f"- PPO from scratch {run_steps(run, 'run')}, {run['num_envs']} envs x {run['world_size']} process(es), seed "
             f"{run['seed']}: Adam lr {ppo['actor_lr']} eps {ppo['adam_eps']}, {ppo['n_steps']}-step rollouts, "
             f"{ppo['update_epochs']} epochs, clip {ppo['clip_ploss_coef']}, clipped value loss {ppo['clip_vloss']}, "
             f"gradient norm {ppo['max_grad_norm']}; `train_ppo_config.json` has every setting.")

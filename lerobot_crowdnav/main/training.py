@@ -240,8 +240,8 @@ class Training:
         c = self.cfg
         done = env_steps_done(out / "checkpoints" / "last", TRAIN_PPO_CONFIG) >= c.crowdnavpp_env_steps
         argv = ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp", *self._env_flags(task),
-                "--env.compute_intrusion=false", f"--env_steps={c.crowdnavpp_env_steps}", f"--seed={seed}",
-                f"--output_dir={out}", *c.crowdnavpp_args]
+                f"--env_steps={c.crowdnavpp_env_steps}", f"--seed={seed}", f"--output_dir={out}",
+                *c.crowdnavpp_args]
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []

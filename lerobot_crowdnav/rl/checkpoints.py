@@ -23,8 +23,10 @@ import torch
 from .. import fault
 from ..checkpoint_files import BEST_INFO, PRETRAINED_MODEL, TRAINING_STATE
 
-# Settings that must not change when a run is resumed.
+# Settings that must not change when a run is resumed, and the simulator fields that may (metrics
+# only: the dynamics and rewards are the same either way).
 RESUME_KEYS = ("env", "num_envs", "ppo", "seed", "env_seed")
+RESUME_FREE_ENV = ("compute_intrusion",)
 
 
 def resume_conflicts(saved: dict, now: dict, world_size: int, defaults: dict | None = None) -> list[str]:
@@ -33,13 +35,15 @@ def resume_conflicts(saved: dict, now: dict, world_size: int, defaults: dict | N
     ``defaults`` (the settings of a default-constructed config)."""
     defaults = defaults or {}
 
-    def filled(k: str):
-        value = saved.get(k)
+    def filled(settings: dict, k: str):
+        value = settings.get(k)
         if isinstance(value, dict) and isinstance(defaults.get(k), dict):
-            return {**{d: v for d, v in defaults[k].items() if d in now.get(k, {})}, **value}
+            value = {**{d: v for d, v in defaults[k].items() if d in now.get(k, {})}, **value}
+        if k == "env" and isinstance(value, dict):
+            value = {d: v for d, v in value.items() if d not in RESUME_FREE_ENV}
         return value
 
-    changed = [k for k in RESUME_KEYS if filled(k) != now.get(k)]
+    changed = [k for k in RESUME_KEYS if filled(saved, k) != filled(now, k)]
     if saved.get("world_size", 1) != world_size:
         changed.append(f"number of processes ({saved.get('world_size', 1)} -> {world_size})")
     return changed

@@ -42,11 +42,22 @@ CARRIED_FILES = (TRAIN_CONFIG,)
 
 
 @dataclass
+class TrainingSimConfig(CrowdSimConfig):
+    """The simulator in training mode: the intrusion test off (the dynamics and rewards are the
+    same, tests/test_orca_robot.py; the ITR/SD metrics are skipped). A class default, not a
+    ``default_factory``: draccus builds ``env`` from the field type's defaults as soon as any
+    ``--env.*`` is given."""
+
+    # Intrusion test for ITR/SD (5-step ORCA look-ahead of the humans); off in training, for speed.
+    compute_intrusion: bool = False
+
+
+@dataclass
 class ValidationConfig:
     # Validate (deterministic sampling) every this many env steps, all processes together; also
     # before the first update and after the last. 0: only then.
     freq: int = 200_000
-    # Validation episodes: the first n seeds of the val split (at most 100).
+    # Validation episodes: the first n seeds of the val split (at most its 1,000).
     n_episodes: int = 100
 
 
@@ -64,9 +75,9 @@ class WandBConfig:
 class PPORunConfig:
     """The settings of any PPO run; a CLI adds ``policy`` and its ``ppo`` settings."""
 
-    # Simulator: --env.task, --env.preset and any simulator field. Training mode by default
-    # (compute_intrusion=false: the dynamics and rewards are the same, the intrusion metrics skipped).
-    env: CrowdSimConfig = field(default_factory=lambda: CrowdSimConfig(compute_intrusion=False))
+    # Simulator: --env.task, --env.preset and any simulator field, in training mode
+    # (--env.compute_intrusion=false unless given).
+    env: TrainingSimConfig = field(default_factory=TrainingSimConfig)
     # Envs stepped together by each process.
     num_envs: int = 64
     # Budget in environment steps, all processes together.
