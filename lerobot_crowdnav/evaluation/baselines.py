@@ -94,7 +94,7 @@ class BaselinesConfig:
     # generalization: the directory of trained models (hub format, named pdpo_<bounded|original>_h<H>
     # and crowdnavpp_<bounded|original>) whose rows join the baselines'; null: baselines only.
     models: Path | None = SHIPPED_MODELS
-    # generalization: the benchmarks (CrowdNav-v0, BoundedCrowdNav-v0) and the simulator preset.
+    # generalization: the benchmarks (CrowdNav-v0, BoundedCrowdNav-v0).
     generalization_tasks: list[str] = field(default_factory=lambda: ["BoundedCrowdNav-v0", "CrowdNav-v0"])
     # generalization: the simulator preset (paper | crowdnavpp).
     generalization_preset: str = "paper"

@@ -66,7 +66,8 @@ class PretrainedPolicyConfig(RobotPolicyConfig):
     device: str = "cpu"
     # Seed of the policy's sampling noise.
     seed: int = 0
-    # PDPO only: false samples with the raw trained weights instead of their EMA (an ablation).
+    # PDPO only: true keeps the checkpoint's own choice (config.json's use_ema); false samples with
+    # the raw trained weights instead of their EMA (an ablation).
     use_ema: bool = True
     # PDPO only: sample with DDIM over this many steps (0: DDPM over all K) instead of the
     # checkpoint's own sampler; a fine-tuned policy only runs the sampler it was fine-tuned with.
@@ -109,7 +110,8 @@ class EvalConfig:
     # Simulator: --env.task (CrowdNav-v0 | BoundedCrowdNav-v0), --env.preset (paper | crowdnavpp)
     # and any simulator field, e.g. --env.randomize_attributes=false.
     env: CrowdSimConfig = field(default_factory=CrowdSimConfig)
-    # Robot policy: --policy.type=orca | straight, or --policy.path=<checkpoint> for a trained one.
+    # Robot policy: --policy.type=orca (the ORCA robot) | straight (full speed to the goal) |
+    # pretrained (a trained checkpoint; --policy.path=<checkpoint> alone implies it).
     policy: RobotPolicyConfig = field(default_factory=OrcaPolicyConfig)
     eval: EvalSettings = field(default_factory=EvalSettings)
     # Where metrics.json goes (default: outputs/eval/<task>_<preset>_<policy>_<split>).

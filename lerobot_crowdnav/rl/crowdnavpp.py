@@ -29,14 +29,14 @@ from .config import PPOConfig
 from .families import Family, register
 
 
+# Class defaults, not a factory: draccus builds ``--ppo.*`` from the class's defaults.
 @dataclass
 class CrowdNavPPPPOConfig(PPOConfig):
     """CrowdNav++'s PPO (reference arguments.py / ppo.py): one Adam, lr 4e-5, eps 1e-5; 30-step
     rollouts; 5 epochs of 2 minibatches (240 steps = 8 whole 30-step sequences of 16 envs); clip
     0.2; clipped value loss, coefficient 0.5; no entropy bonus; gradient norm 0.5; gamma 0.99,
     GAE lambda 0.95; advantages normalized once over the rollout; timeouts terminal; raw rewards;
-    no KL stop and no critic warm-up (the trunk is shared). Class defaults, not a factory: draccus
-    builds ``--ppo.*`` from the class's defaults."""
+    no KL stop and no critic warm-up (the trunk is shared)."""
 
     # Steps each env takes per iteration (the reference: num_steps 30).
     n_steps: int = 30
@@ -54,19 +54,23 @@ class CrowdNavPPPPOConfig(PPOConfig):
     vf_coef: float = 0.5
     # KL early stop (0: never, as the reference).
     target_kl: float = 0.0
-    # Rewards as they come (the reference scales none).
+    # Scale rewards by a running std of the discounted return (false: raw rewards, as the reference).
     reward_scale_running: bool = False
-    # No critic-only iterations (the trunk is shared).
+    # The clip of the scaled rewards (only with --ppo.reward_scale_running=true).
+    reward_clip: float = 10.0
+    # Critic-only iterations before the actor trains (0: none, as the reference: the trunk is shared).
     n_critic_warmup_itr: int = 0
+    # AdamW weight decay of the network (0: plain Adam, as the reference).
+    weight_decay: float = 0.0
     # Gradient-norm clip (the reference: 0.5).
     max_grad_norm: float = 0.5
     # Adam's epsilon (the reference: 1e-5).
     adam_eps: float = 1e-5
     # Clipped value loss (the reference: use_clipped_value_loss).
     clip_vloss: bool = True
-    # Advantages normalized over the whole rollout (the reference), not per minibatch.
+    # Where advantages are normalized: minibatch | rollout (the reference: once over the whole rollout).
     norm_adv: str = "rollout"
-    # Timeouts end the return like other terminations (the reference).
+    # Bootstrap the value at timeouts (false: a timeout ends the return like other terminations, as the reference).
     bootstrap_timeouts: bool = False
 
 
