@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 import torch
 from safetensors.torch import load_file
 
-from lerobot_crowdnav.checkpoint_files import FINETUNE_CONFIG, WEIGHTS
+from lerobot_crowdnav.checkpoint_files import CRITIC, FINETUNE_CONFIG, WEIGHTS
 from lerobot_crowdnav.cli import run_cli
 from lerobot_crowdnav.data.dataset import COLLECTION_FILE
 from lerobot_crowdnav.fault import ENV
@@ -63,12 +63,12 @@ def _table(paths: list[Path], drop: tuple[str, ...] = ()):
     return table.drop_columns([c for c in drop if c in table.column_names])
 
 
-def dataset_differences(a: Path, b: Path) -> list[str]:
-    """What differs between two collections, file boundaries aside: frames, episodes table,
-    tasks, info.json, stats.json (exact)."""
+def dataset_differences(a: Path, b: Path, file_boundaries: bool = True) -> list[str]:
+    """What differs between two collections: frames, episodes table, tasks, info.json, stats.json
+    (exact); the episodes' data and meta file indices only with ``file_boundaries``."""
     out = [rel for rel in ("meta/info.json", "meta/stats.json", COLLECTION_FILE)
            if json.loads((a / rel).read_text()) != json.loads((b / rel).read_text())]
-    for pattern, drop in (("data/*/*.parquet", ()), ("meta/episodes/*/*.parquet", FILE_COLUMNS),
+    for pattern, drop in (("data/*/*.parquet", ()), ("meta/episodes/*/*.parquet", () if file_boundaries else FILE_COLUMNS),
                           ("meta/tasks.parquet", ())):
         if not _table(sorted(a.glob(pattern)), drop).equals(_table(sorted(b.glob(pattern)), drop)):
             out.append(pattern)
@@ -101,7 +101,7 @@ def collect_case(work: Path, keep: str, point: str, count: int, reference: Path,
         assert not (root / "README.md").exists(), "a killed collection looks complete"
     check_partial_dataset(root)
     collect_main([*argv, "--resume=true"])
-    return dataset_differences(root, reference)
+    return dataset_differences(root, reference, file_boundaries=keep == "all")
 
 
 # -- lerobot-crowdnav-finetune -------------------------------------------------------------------
@@ -146,10 +146,10 @@ def check_last_checkpoint(out: Path) -> None:
 
 
 def finetune_record(out: Path) -> tuple[list[dict], dict]:
-    """The run's compared progress fields and its last and best weights."""
+    """The run's compared progress fields and its last and best weights (actor and critic)."""
     records = [{k: r.get(k) for k in COMPARED} for r in map(json.loads, (out / "progress.jsonl").read_text().splitlines())]
-    weights = {f"{name}/{k}": v for name in ("last", "best")
-               for k, v in load_file(out / "checkpoints" / name / "pretrained_model" / "model.safetensors").items()}
+    weights = {f"{name}/{file}/{k}": v for name in ("last", "best") for file in (WEIGHTS, CRITIC)
+               for k, v in load_file(out / "checkpoints" / name / "pretrained_model" / file).items()}
     return records, weights
 
 

@@ -341,6 +341,14 @@ def test_agent_scores_a_rollout_as_it_acted():
     assert scores.logp.shape == (30, 4, 1) and scores.value.shape == (30, 4) and scores.entropy.shape == (30, 4)
     # the entropy of a 2-D Gaussian with std 1
     torch.testing.assert_close(scores.entropy, torch.full((30, 4), math.log(2 * math.pi * math.e)))
+    # the replay's means are the acting means: what is left of each stored action is the noise drawn
+    generator = torch.Generator().manual_seed(0)
+    noise = torch.stack([torch.randn(4, 2, generator=generator) for _ in range(30)])
+    with torch.no_grad():
+        mean, _, _ = agent.net.unroll(ro.stored["obs"], ro.memory0, torch.as_tensor(ro.starts))
+    torch.testing.assert_close(ro.stored["action"] - mean, noise)
+    torch.testing.assert_close(scores.logp[..., 0], (-0.5 * noise**2 - 0.5 * math.log(2 * math.pi)).sum(-1))
+    assert ro.starts[1:].any()  # an episode restarted inside the rollout: the replay restarted it too
     cfg = CrowdNavPPPPOConfig(batch_size=60)
     opt = {name: torch.optim.Adam(p, lr=cfg.actor_lr, eps=cfg.adam_eps) for name, p in agent.param_groups().items()}
     assert list(opt) == ["actor"] and sum(p.numel() for p in agent.param_groups()["actor"]) == 2_502_021
@@ -401,6 +409,9 @@ def test_resume_is_bitwise(tmp_path):
         assert resumed[i]["rollout_digest"] == straight[i]["rollout_digest"]
         for key in ("loss/policy_loss", "loss/value_loss", "approx_kl", "train/episodes"):
             assert resumed[i][key] == straight[i][key], (i, key)
+    weights = [(run / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").read_bytes()
+               for run in (tmp_path / "a", tmp_path / "b")]
+    assert weights[0] == weights[1]  # the last update too
     with pytest.raises(SystemExit, match="different settings"):
         train(tmp_path / "b", "--env_steps=480", "--resume=true", "--ppo.clip_vloss=false")
 
@@ -426,4 +437,10 @@ def test_configs_parse_with_the_reference_ppo(name, task, preset):
     sim = cfg.env.resolve()
     assert (sim.task, sim.preset, sim.randomize_attributes) == (task, preset, True)
     assert cfg.ppo == CrowdNavPPPPOConfig() and (cfg.num_envs, cfg.env_steps, cfg.seed) == (16, 10_000_000, 425)
+    p = cfg.ppo  # the reference's arguments.py / ppo.py, written out (not the class's own defaults)
+    assert (p.n_steps, p.batch_size, p.update_epochs, p.actor_lr, p.adam_eps, p.clip_ploss_coef, p.vf_coef,
+            p.max_grad_norm, p.gamma, p.gae_lambda, p.target_kl) == (30, 240, 5, 4e-5, 1e-5, 0.2, 0.5, 0.5, 0.99, 0.95, 0)
+    assert (p.norm_adv, p.bootstrap_timeouts, p.clip_vloss, p.reward_scale_running, p.n_critic_warmup_itr,
+            p.weight_decay) == ("rollout", False, True, False, 0, 0)
+    assert not cfg.env.compute_intrusion
     assert cfg.ppo.batch_size // cfg.ppo.n_steps == cfg.num_envs // 2  # 2 minibatches of whole sequences

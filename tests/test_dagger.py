@@ -91,7 +91,7 @@ def test_a_round_aggregates_labelled_chunks_that_lerobot_reads(tmp_path):
     assert [r["first_episode_index"] for r in again] == [n_demos]
     assert again[0]["snippets"] == record["snippets"]
     assert json.loads((root / "meta/info.json").read_text())["total_episodes"] == n_demos + record["snippets"]
-    with pytest.raises(SystemExit, match="round"):
+    with pytest.raises(SystemExit, match="--round must be >= 1"):
         dagger_main([*argv[:2], "--round=0"])
 
 

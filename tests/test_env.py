@@ -2,6 +2,7 @@
 walls, episode accounting and bad input."""
 
 import math
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -293,8 +294,11 @@ def test_bad_actions_raise_clear_errors_and_overspeed_is_clipped():
 @pytest.mark.parametrize("task", ["CrowdNav-v0", "BoundedCrowdNav-v0"])
 def test_gymnasium_registration_check_env_and_native_vector_env(task):
     env = gym.make(f"lerobot_crowdnav/{task}")
-    with pytest.warns(UserWarning):  # only the infinite observation bounds are flagged
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         check_env(env.unwrapped, skip_render_check=False)
+    messages = [str(w.message) for w in caught]
+    assert messages and all("infinit" in m for m in messages), messages  # only the unbounded observations
     assert env.unwrapped.config.bounded == (task == "BoundedCrowdNav-v0")
     vec = gym.make_vec(f"lerobot_crowdnav/{task}", num_envs=6, vectorization_mode="vector_entry_point")
     assert isinstance(vec, CrowdNavVectorEnv)

@@ -4,13 +4,16 @@ The main job's case is in tests/test_report.py (it shares the uninterrupted tiny
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -59,9 +62,27 @@ def test_killed_collection_resumes_to_the_uninterrupted_dataset(work, references
     assert resumed[last]["action_is_pad"].tolist() == [False, True, True, True, True]
 
 
-def test_dataset_differences_sees_a_changed_stat(work, references):
-    """The comparison the cases rely on can fail."""
-    assert fi.dataset_differences(references["all"], references["success"]) != []
+def test_dataset_differences_sees_a_changed_stat(work, references, tmp_path):
+    """The comparison the cases rely on can fail: one number changed in stats.json or in the
+    frames is found, and nothing else."""
+    import pyarrow as pa
+
+    copy = tmp_path / "copy"
+    shutil.copytree(references["all"], copy)
+    assert fi.dataset_differences(references["all"], copy) == []
+    stats = json.loads((copy / "meta/stats.json").read_text())
+    stats["action"]["mean"][0] += 1e-6
+    (copy / "meta/stats.json").write_text(json.dumps(stats))
+    assert fi.dataset_differences(references["all"], copy) == ["meta/stats.json"]
+    shutil.rmtree(copy)
+    shutil.copytree(references["all"], copy)
+    path = sorted(copy.glob("data/*/*.parquet"))[0]
+    table = pq.read_table(path)
+    actions = table["action"].to_pylist()
+    actions[0][0] += 1e-6
+    pq.write_table(table.set_column(table.schema.get_field_index("action"), "action",
+                                    pa.array(actions, type=table.schema.field("action").type)), path)
+    assert fi.dataset_differences(references["all"], copy) == ["data/*/*.parquet"]
 
 
 @pytest.fixture(scope="module")

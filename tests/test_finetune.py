@@ -191,7 +191,13 @@ def test_ddim_fine_tuning_scores_its_own_chains(pretrained, tmp_path):
     z = agent.policy.actor.encoder(ro.stored["state"].flatten(0, 1))
     logp = transition_log_prob(agent.policy.actor, z, chain, cfg.min_logprob_denoising_std)
     assert logp.shape == (chain.shape[0], 5) and torch.isfinite(logp).all()
-    # each sampled transition is at most 3 floored stds from its mean: log-density above the clamp floor
+    # each sampled transition is at most 3 floored stds from the mean it is scored against
+    ft = chain.shape[1] - 1
+    x_k, x_prev = chain[:, :-1].flatten(0, 1), chain[:, 1:].flatten(0, 1)
+    k = torch.arange(ft - 1, -1, -1).repeat(chain.shape[0])
+    with torch.no_grad():
+        mean, std = agent.policy.actor.p_mean_std(x_k, k, z.repeat_interleave(ft, dim=0))
+    assert ((x_prev - mean).abs() <= 3 * std.clamp(min=cfg.min_sampling_denoising_std) + 1e-5).all()
     assert (logp > -5).all()
     out = tmp_path / "run"
     run(pretrained, out, "--env_steps=32", "--ppo.ddim_steps=5", "--ppo.ft_denoising_steps=5")

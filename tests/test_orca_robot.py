@@ -117,14 +117,25 @@ def test_rollout_cache_changes_nothing():
     """Stepping after orca_actions (roll-out reused) equals stepping with the same actions and a
     fresh roll-out, with the intrusion test on or off."""
     cfg = CrowdSimConfig(orca_robot="look_ahead")
-    a, b = CrowdSim(cfg, 4), CrowdSim(CrowdSimConfig(orca_robot="look_ahead", compute_intrusion=False), 4)
-    a.reset(np.arange(4) + 50)
-    b.reset(np.arange(4) + 50)
+    # a: roll-out cached by orca_actions; b: the same, recomputed inside step; c: intrusion test off
+    off = CrowdSimConfig(orca_robot="look_ahead", compute_intrusion=False)
+    a, b, c = CrowdSim(cfg, 4), CrowdSim(cfg, 4), CrowdSim(off, 4)
+    for sim in (a, b, c):
+        sim.reset(np.arange(4) + 50)
+    intrusions = 0
     for _ in range(50):
         act = a.orca_actions()
-        b.rollout_depth[:] = 0  # b recomputes everything inside step
-        ra, rb = a.step(act), b.step(act)
-        assert np.array_equal(a.obs, b.obs) and np.array_equal(ra.reward, rb.reward)
+        b.rollout_depth[:] = 0
+        c.rollout_depth[:] = 0
+        ra, rb, rc = a.step(act), b.step(act), c.step(act)
+        for other, r in ((b, rb), (c, rc)):
+            assert np.array_equal(a.obs, other.obs) and np.array_equal(ra.reward, r.reward)
+            assert np.array_equal(ra.event, r.event)
+        assert np.array_equal(ra.intrusion, rb.intrusion)
+        assert np.array_equal(ra.intrusion_distance, rb.intrusion_distance)  # all L cached steps used
+        assert not rc.intrusion.any()
+        intrusions += int(ra.intrusion.sum())
+    assert intrusions > 0
 
 
 def intrusion_rate(preset, orca_robot, n=64):

@@ -285,6 +285,10 @@ def test_sampling_shapes_determinism_and_no_nan_without_humans(dataset_root):
     empty[:, 249:] = 0.0  # nobody visible
     out = policy.predict_action_chunk({"observation.state": empty})
     assert torch.isfinite(out).all()
+    encoder = policy.actor.encoder  # with nobody visible the pooled crowd vector is exactly 0
+    pooled = encoder._pool(torch.randn(8, encoder.n, encoder.row), torch.zeros(8, encoder.n, dtype=torch.bool),
+                           torch.randn(8, 9))
+    assert torch.equal(pooled, torch.zeros_like(pooled))
     policy.train()
     loss, _ = policy.forward({**batch, "observation.state": empty})
     assert torch.isfinite(loss)

@@ -61,6 +61,8 @@ def test_teacher_scores_are_sensible(states):
     assert r["states"] >= 10
     for value in (r["velocity_follow"], r["goal_turn_deg"] / 30.0, r["r2_action_is_velocity"]):
         assert math.isfinite(value) and -0.5 <= value <= 1.5
+    # the teacher reacts to both, partly (docs: follow 0.56, goal turn 4.0 degrees on 50 episodes)
+    assert 0.2 < r["velocity_follow"] < 0.9 and 0.5 < r["goal_turn_deg"] < 15, r
 
 
 def test_observe_changes_only_the_perturbed_entries_and_not_the_teacher(states):

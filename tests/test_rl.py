@@ -203,6 +203,9 @@ def test_a_registered_family_trains_checkpoints_and_resumes_through_the_ppo_cli(
     for i in (2, 3):
         assert resumed[i]["rollout_digest"] == straight[i]["rollout_digest"]
         assert resumed[i]["loss/policy_loss"] == straight[i]["loss/policy_loss"]
+        assert resumed[i]["loss/value_loss"] == straight[i]["loss/value_loss"]
+    resumed_path = tmp_path / "b" / "checkpoints" / "last" / "pretrained_model"
+    assert (path / WEIGHTS).read_bytes() == (resumed_path / WEIGHTS).read_bytes()  # the last update too
     assert "A Gaussian MLP policy (32 hidden units)" in str(policy_card(path, "local/gaussian"))
     (path / POLICY_CONFIG).write_text(json.dumps({"type": "unknown"}))
     with pytest.raises(ValueError, match="'unknown' policy, which has no model card"):
