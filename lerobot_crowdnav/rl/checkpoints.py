@@ -35,15 +35,18 @@ def resume_conflicts(saved: dict, now: dict, world_size: int, defaults: dict | N
     ``defaults`` (the settings of a default-constructed config)."""
     defaults = defaults or {}
 
-    def filled(settings: dict, k: str):
-        value = settings.get(k)
+    def filled(k: str):
+        value = saved.get(k)
         if isinstance(value, dict) and isinstance(defaults.get(k), dict):
-            value = {**{d: v for d, v in defaults[k].items() if d in now.get(k, {})}, **value}
-        if k == "env" and isinstance(value, dict):
-            value = {d: v for d, v in value.items() if d not in RESUME_FREE_ENV}
+            return {**{d: v for d, v in defaults[k].items() if d in now.get(k, {})}, **value}
         return value
 
-    changed = [k for k in RESUME_KEYS if filled(saved, k) != filled(now, k)]
+    def compared(k: str, value):
+        if k == "env" and isinstance(value, dict):
+            return {d: v for d, v in value.items() if d not in RESUME_FREE_ENV}
+        return value
+
+    changed = [k for k in RESUME_KEYS if compared(k, filled(k)) != compared(k, now.get(k))]
     if saved.get("world_size", 1) != world_size:
         changed.append(f"number of processes ({saved.get('world_size', 1)} -> {world_size})")
     return changed
