@@ -59,7 +59,7 @@ def test_eval_writes_metrics_and_prints_row(tmp_path, capsys, policy, task):
     assert result["pl"] == pytest.approx(sum(e["path_length"] for e in episodes) / n)
     successes = [e for e in episodes if e["event"] == "success"]
     assert successes, "expected at least one success in 12 episodes"
-    assert result["nt"] == pytest.approx(sum(e["steps"] for e in successes) * 0.25 / len(successes))
+    assert result["nt"] == pytest.approx(sum(e["steps"] - 1 for e in successes) * 0.25 / len(successes))
     assert result["pl"] > 0 and math.isfinite(result["sd"])
     if task == "CrowdNav-v0":
         assert not any(e["event"] == "wall_collision" for e in episodes)

@@ -25,13 +25,13 @@ def test_metrics_on_hand_built_records():
     m = compute_metrics(records, dt=0.25)
     assert m["sr"] == 0.4 and m["cr"] == 0.4 and m["tr"] == 0.2
     assert m["cr_human"] == 0.2 and m["cr_wall"] == 0.2
-    assert m["nt"] == pytest.approx((40 + 60) / 2 * 0.25)
+    assert m["nt"] == pytest.approx((39 + 59) / 2 * 0.25)  # the goal is found before the last move
     assert m["pl"] == pytest.approx((10 + 14 + 5 + 0 + 30) / 5)
     assert m["itr"] == pytest.approx((4 / 40 + 0 + 10 / 20 + 0 + 0) / 5)
     assert m["sd"] == pytest.approx((1.6 + 3.0) / 14)
     assert m["oob"] == 0.5  # one of the two successes left the workspace
     row = markdown_row(m, bounded=False)
-    assert row == "| 40.0 | 12.50 | 11.80 | 12.00 | 0.33 | 40.0 | 20.0 | 50.0 |"
+    assert row == "| 40.0 | 12.25 | 11.80 | 12.00 | 0.33 | 40.0 | 20.0 | 50.0 |"
     assert markdown_header(bounded=True).splitlines() == [
         "| SR (%) | NT (s) | PL (m) | ITR (%) | SD (m) |", "|---|---|---|---|---|"]
 
@@ -88,3 +88,23 @@ def test_intrusion_ignores_humans_out_of_sensing_range_and_can_be_off():
     sim.human_goal[0, 0] = [-20.0, 0.0]
     res = sim.step(np.zeros((1, 2)))
     assert not res.intrusion[0]
+
+
+@pytest.mark.parametrize("task, robot_at, goal_at, event", [
+    ("CrowdNav-v0", [0.0, 0.0], [0.0, 0.05], "success"),
+    ("BoundedCrowdNav-v0", [0.0, 5.9], [0.0, 0.0], "wall_collision"),
+])
+def test_the_step_that_ends_the_episode_is_never_an_intrusion(task, robot_at, goal_at, event):
+    """CrowdNav++ reports an intrusion only on steps the episode goes on from: the human walking
+    at the robot intrudes as in the test above, yet the step that ends the episode does not count
+    (ITR's denominator still counts it)."""
+    from lerobot_crowdnav.sim.engine import EVENT_NAMES
+    sim = parked(CrowdSimConfig(task=task))
+    sim.robot_pos[0], sim.robot_goal[0] = robot_at, goal_at
+    sim.human_pos[0, 0] = [robot_at[0] + 1.5, robot_at[1]]
+    sim.human_goal[0, 0] = [-20.0, robot_at[1]]
+    sim.human_vpref[0, 0] = 1.0
+    sim.observe()
+    res = sim.step(np.zeros((1, 2)))
+    assert EVENT_NAMES[res.event[0]] == event
+    assert not res.intrusion[0] and math.isinf(res.intrusion_distance[0])

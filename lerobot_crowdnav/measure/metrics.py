@@ -1,13 +1,16 @@
 """Navigation metrics from per-episode records (the episode records of ``CrowdNavVectorEnv``).
 
 - SR, CR (human + wall), TR: shares of episodes ending in success, collision, timeout.
-- NT (s): mean navigation time of successful episodes, ``length * dt`` (CrowdNav's
-  ``global_time`` at the end of the episode, the final step included).
-- PL (m): mean robot path length per episode, summed over the robot's own moves inside the
-  episode. CrowdNav++'s evaluation adds the jump to the next episode's start position (its
-  vectorised env has already reset when the length is read); this one does not.
+- NT (s): mean navigation time of successful episodes, ``(length - 1) * dt``: the time of the
+  pre-move position found at the goal, which CrowdNav++'s evaluation records (``global_time``
+  read before the final step).
+- PL (m): mean robot path length per episode, summed over the robot's own moves up to the
+  final step's pre-move position (where NT stops). CrowdNav++'s evaluation replaces the final
+  move with the jump to the next episode's start position (its vectorised env has already reset
+  when the length is read); this one does not.
 - ITR: per episode, the share of steps in which the robot is within ``r + 0.3`` of a visible
-  human's true position 1..5 steps ahead; averaged over episodes (a fraction; tables show %).
+  human's true position 1..5 steps ahead; averaged over episodes (a fraction; tables show %). As
+  in CrowdNav++, the step that ends the episode is never an intrusion but counts in the steps.
 - SD (m): mean over all intrusion steps of all episodes of the closest such centre distance.
 - OOB: share of successful episodes whose robot centre left the workspace at some step.
 
@@ -123,7 +126,7 @@ def compute_metrics(records: list[EpisodeRecord], dt: float) -> dict[str, float]
         "cr_human": count[HUMAN_COLLISION] / n,
         "cr_wall": count[WALL_COLLISION] / n,
         "tr": count[TIMEOUT] / n,
-        "nt": _mean(r.steps * dt for r in success),
+        "nt": _mean((r.steps - 1) * dt for r in success),
         "pl": _mean(r.path_length for r in records),
         "itr": _mean(r.intrusion_steps / r.steps for r in records),
         "sd": (sum(r.intrusion_distance_sum for r in records) / intrusion_steps

@@ -592,10 +592,12 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
     out_oob[b] = abs(rx) > p.arena or abs(ry) > p.arena
 
     # Intrusion: robot within r + 0.3 of a currently visible human's TRUE position k = 1..L steps
-    # ahead (the roll-out).
+    # ahead (the roll-out). Not on the step that ends the episode: CrowdNav++ reports an intrusion
+    # (its `Danger` info) only in the branch after timeout, collision and goal, so its ITR never
+    # counts that step (its denominator does).
     out_intrusion[b] = False
     out_intr_dist[b] = math.inf
-    if p.intrusion:
+    if p.intrusion and event == RUNNING:
         for i in range(n):
             d_now = math.sqrt((hp[b, i, 0] - rx) ** 2 + (hp[b, i, 1] - ry) ** 2)
             if d_now - p.robot_radius - hr[b, i] <= p.sensing:
@@ -736,9 +738,10 @@ class StepResult(NamedTuple):
     reward: np.ndarray  # float64
     event: np.ndarray  # int64, see EVENT_NAMES; RUNNING while the episode goes on
     min_distance: np.ndarray  # closest human surface distance before the move (m)
-    intrusion: np.ndarray  # bool: robot inside r + 0.3 of a visible human's true future position
+    intrusion: np.ndarray  # bool: robot inside r + 0.3 of a visible human's true future position;
+    # False on the step that ends the episode (as CrowdNav++'s ITR)
     intrusion_distance: np.ndarray  # closest such centre distance over k = 1..L (m); inf if no
-    # visible human or compute_intrusion is off
+    # visible human, on the final step, or with compute_intrusion off
     distance: np.ndarray  # robot path length added by this step (m), 0 on the final step
     out_of_bounds: np.ndarray  # bool: robot centre outside the workspace before the move
 
