@@ -221,3 +221,21 @@ def test_baselines_command_writes_tables_and_resumes(tmp_path, capsys):
     baselines_main(["--n_episodes=4", "--batch_size=4", "--only=[bounded_paper]", f"--output_dir={tmp_path}"])
     audit = (tmp_path / "baselines.md").read_text().split("Wall audit")[1]  # a Bounded table's
     assert "| ORCA current-state, wall-aware | 4 | " in audit and "| straight | 4 | " in audit
+
+
+def test_a_saved_evaluation_is_reused_only_for_the_same_request(tmp_path, capsys):
+    """The main job and the baselines reuse a metrics.json only when it answers the same
+    evaluation: another preset, crowd, policy setting or metric definition runs it again."""
+    from lerobot_crowdnav.evaluation.eval import parse, saved_result
+
+    args = ["--policy.type=straight", "--env.task=BoundedCrowdNav-v0", "--eval.n_episodes=2", f"--output_dir={tmp_path}"]
+    main(args)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved_result(parse(args)) == saved
+    assert saved_result(parse(args + ["--eval.batch_size=1"])) == saved  # the numbers do not depend on it
+    for other in (["--env.preset=crowdnavpp"], ["--env.human_policy=social_force"], ["--eval.n_episodes=3"],
+                  ["--eval.split=val"], ["--policy.type=orca"]):
+        assert saved_result(parse(args + other)) is None, other
+    saved["request"]["metrics_version"] -= 1  # evaluated under an older metric definition
+    (tmp_path / "metrics.json").write_text(json.dumps(saved))
+    assert saved_result(parse(args)) is None

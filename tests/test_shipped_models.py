@@ -5,8 +5,11 @@ the 500 test seeds; tests/test_report.py checks that a shipped copy reproduces i
 from __future__ import annotations
 
 import json
+import shutil
 
+import numpy as np
 import pytest
+import torch
 
 from lerobot_crowdnav.evaluation.eval import main as eval_main
 from lerobot_crowdnav.main.config import SHIPPED_MODELS
@@ -31,3 +34,26 @@ def test_shipped_model_has_its_card_and_evaluates(path, tmp_path):
                f"--output_dir={tmp_path}"])
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["n_episodes"] == 4 and metrics["policy"] == path.name
+
+
+def test_a_policy_trained_on_a_gpu_evaluates_and_fine_tunes_on_the_cpu(tmp_path):
+    """lerobot-train on a GPU saves its device in the preprocessor; evaluation, DAgger, the figures
+    and fine-tuning put the inputs where they run instead (as lerobot-eval does)."""
+    from lerobot_crowdnav.measure.episodes import LearnedPolicy
+    from lerobot_crowdnav.rl.config import DiffusionPPOConfig
+    from lerobot_crowdnav.rl.dppo import load_agent
+    from lerobot_crowdnav.sim.config import CrowdSimConfig
+    from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
+
+    path = shutil.copytree(SHIPPED_MODELS / "pdpo_bounded_h1", tmp_path / "gpu_trained")
+    for name in ("config.json", "policy_preprocessor.json"):
+        text = (path / name).read_text()
+        assert '"device": "cpu"' in text
+        (path / name).write_text(text.replace('"device": "cpu"', '"device": "cuda"'))
+    sim_cfg = CrowdSimConfig(task="BoundedCrowdNav-v0").resolve()
+    obs, _ = CrowdNavVectorEnv(2, config=sim_cfg).reset(seed=[0, 1])
+    actions = LearnedPolicy(path, "cpu", sim_cfg.obs_dim)(obs, np.ones(2, bool))
+    assert actions.shape == (2, 2) and np.isfinite(actions).all()
+    step = load_agent(path, DiffusionPPOConfig(), seed=0).act(torch.as_tensor(obs), None, explore=True,
+                                                              generator=torch.Generator().manual_seed(0))
+    assert step.action.shape == (2, 2) and torch.isfinite(step.action).all()

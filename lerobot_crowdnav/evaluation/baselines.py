@@ -24,7 +24,6 @@ each also as ``<output_dir>/generalization_<task>.csv``.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +32,7 @@ from ..cli import run_cli
 from ..measure.metrics import markdown_header, markdown_row
 from ..sim.config import CROWDS, TASKS, CrowdSimConfig
 from .eval import (EvalConfig, EvalSettings, OrcaPolicyConfig, PretrainedPolicyConfig, RobotPolicyConfig,
-                   StraightPolicyConfig, evaluate)
+                   StraightPolicyConfig, evaluate, saved_result)
 from .generalization import (CROWD_LABELS, check_crowds, crowd_env, crowds_sentence, generalization_csv,
                              generalization_markdown, read_csv)
 from .report import Row, wall_audit
@@ -113,22 +112,20 @@ def _slug(name: str) -> str:
 
 def run_row(cfg: BaselinesConfig, env: dict, overrides: dict | None, out: Path,
             policy: RobotPolicyConfig | None = None) -> dict:
-    """One row's metrics, from its metrics.json when that holds the same episode count (and, for a
-    trained model, is newer than its weights). ``policy`` defaults to the ORCA robot, or straight
-    when ``overrides`` is None."""
-    path = out / "metrics.json"
-    if path.exists():
-        result = json.loads(path.read_text())
-        weights = Path(policy.path) / WEIGHTS if isinstance(policy, PretrainedPolicyConfig) else None
-        fresh = weights is None or not weights.exists() or path.stat().st_mtime >= weights.stat().st_mtime
-        if result["n_episodes"] == cfg.n_episodes and fresh:
-            return result
+    """One row's metrics, from its metrics.json when that answers the same evaluation
+    (``eval.saved_result``; for a trained model, also newer than its weights). ``policy`` defaults
+    to the ORCA robot, or straight when ``overrides`` is None."""
     if policy is None:
         policy = StraightPolicyConfig() if overrides is None else OrcaPolicyConfig()
-    return evaluate(EvalConfig(env=CrowdSimConfig(**env, **(overrides or {})), policy=policy,
-                               eval=EvalSettings(n_episodes=cfg.n_episodes, split="test",
-                                                 batch_size=cfg.batch_size),
-                               output_dir=out, overwrite=True))
+    eval_cfg = EvalConfig(env=CrowdSimConfig(**env, **(overrides or {})), policy=policy,
+                          eval=EvalSettings(n_episodes=cfg.n_episodes, split="test", batch_size=cfg.batch_size),
+                          output_dir=out, overwrite=True)
+    result = saved_result(eval_cfg)
+    if result is not None:
+        weights = Path(policy.path) / WEIGHTS if isinstance(policy, PretrainedPolicyConfig) else None
+        if weights is None or not weights.exists() or (out / "metrics.json").stat().st_mtime >= weights.stat().st_mtime:
+            return result
+    return evaluate(eval_cfg)
 
 
 def trained_models(models: Path | None, task: str) -> dict[str, Path]:

@@ -23,7 +23,7 @@ import numpy as np
 from ..checkpoint_files import PRETRAINED_MODEL
 from ..cli import machine_description, run_cli
 from ..measure.episodes import LearnedPolicy, json_safe, run_episodes
-from ..measure.metrics import compute_metrics, markdown_header, markdown_row
+from ..measure.metrics import METRICS_VERSION, compute_metrics, markdown_header, markdown_row
 from ..sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
 from ..sim.envs import CrowdNavEnv, CrowdNavVectorEnv
 
@@ -120,6 +120,39 @@ class EvalConfig:
     overwrite: bool = False
 
 
+def request(cfg: EvalConfig) -> dict:
+    """What decides an evaluation's numbers (saved in metrics.json): the policy and its settings,
+    the resolved simulator, the split, the episode count and the metric definitions."""
+    asked = {"metrics_version": METRICS_VERSION, "policy": {"type": cfg.policy.name, **draccus.encode(cfg.policy)},
+             "env": cfg.env.resolve().to_dict(), "split": cfg.eval.split, "n_episodes": cfg.eval.n_episodes}
+    return json.loads(json.dumps(json_safe(asked), default=str))
+
+
+def saved_result(cfg: EvalConfig) -> dict | None:
+    """The metrics.json in ``cfg.output_dir`` if it answers ``cfg``'s :func:`request`, else None:
+    the main job and the baselines reuse it then, and run the evaluation again otherwise (another
+    preset, crowd, policy setting or metric version)."""
+    path = Path(cfg.output_dir) / "metrics.json"
+    if not path.exists():
+        return None
+    result = json.loads(path.read_text())
+    return result if result.get("request") == request(cfg) else None
+
+
+def cli_args(argv: list[str]) -> list[str]:
+    """``lerobot-crowdnav-eval``'s arguments as draccus reads them: ``--policy.path`` alone implies
+    ``--policy.type=pretrained`` (lerobot's style)."""
+    argv = list(argv)
+    if any(a.startswith("--policy.path") for a in argv) and not any(a.startswith("--policy.type") for a in argv):
+        argv.insert(0, "--policy.type=pretrained")
+    return argv
+
+
+def parse(argv: list[str]) -> EvalConfig:
+    """The config of a ``lerobot-crowdnav-eval`` command line (without the program name)."""
+    return draccus.parse(config_class=EvalConfig, args=cli_args(argv))
+
+
 def evaluate(cfg: EvalConfig) -> dict:
     cfg.eval.validate()
     sim_cfg = cfg.env.resolve()
@@ -144,6 +177,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     result = {
         **metrics,
         "n_episodes": len(records),
+        "request": request(cfg),
         "split": cfg.eval.split,
         "policy": policy,
         "policy_description": sim_cfg.orca_description if policy == "orca" else policy,
@@ -177,10 +211,7 @@ def evaluate(cfg: EvalConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if any(a.startswith("--policy.path") for a in argv) and not any(a.startswith("--policy.type") for a in argv):
-        argv.insert(0, "--policy.type=pretrained")  # lerobot-style --policy.path=<checkpoint>
-    run_cli(EvalConfig, evaluate, argv)
+    run_cli(EvalConfig, evaluate, cli_args(sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

@@ -105,7 +105,8 @@ class MainConfig:
     crowds: list[str] = field(default_factory=lambda: list(CROWDS))
     # Organization of the hub-format repositories (<run>/hub/{datasets,models}/<org>/...).
     hub_org: str = "local"
-    # Torch device for training and evaluation (default: cuda when available, else cpu).
+    # Torch device for training and evaluation (default: training on cuda when available, else
+    # cpu; evaluation on cpu). A checkpoint trained on one device evaluates on any.
     device: str | None = None
     # Evaluate again even when metrics exist (the tables come out identical: evaluation is deterministic).
     rerun_eval: bool = False

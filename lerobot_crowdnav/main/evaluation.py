@@ -6,7 +6,6 @@ identical tables), the storyboard and multimodality figures of a PDPO policy, an
 from __future__ import annotations
 
 import hashlib
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -53,9 +52,9 @@ class Evaluator:
         """``ev`` on the test seeds, in the trained crowd (the results tables) or in ``crowd`` (the
         generalization table: its own directory and stage, no GIF)."""
         from ..evaluation.eval import main as eval_main
+        from ..evaluation.eval import parse, saved_result
 
         out = self.paths.eval_dir(task, ev.name, crowd)
-        metrics = out / "metrics.json"
         policy = [f"--policy.type={ev.name}"] if ev.policy is None else [f"--policy.path={ev.policy}"]
         if self.cfg.device and ev.policy is not None:
             policy.append(f"--policy.device={self.cfg.device}")
@@ -64,8 +63,7 @@ class Evaluator:
                 f"--eval.n_episodes={self.cfg.test_episodes}", "--eval.split=test",
                 f"--eval.batch_size={min(256, self.cfg.test_episodes)}", f"--eval.n_videos={int(trained)}",
                 f"--output_dir={out}", "--overwrite=true"]
-        done = (not self.cfg.rerun_eval and metrics.exists()
-                and json.loads(metrics.read_text())["n_episodes"] == self.cfg.test_episodes)
+        done = not self.cfg.rerun_eval and saved_result(parse(argv[1:])) is not None
         digest = out / POLICY_DIGEST
         if ev.shipped and trained:
             # A shipped model may have been replaced since its last evaluation (under a minute): always run.

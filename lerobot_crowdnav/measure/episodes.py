@@ -58,7 +58,7 @@ class LearnedPolicy:
         self.policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg).eval()
         if not use_ema and hasattr(cfg, "use_ema"):
             cfg.use_ema = False  # after loading: the checkpoint's EMA weights stay, unused
-        self.pre, self.post = make_pre_post_processors(cfg, pretrained_path=str(path))
+        self.pre, self.post = make_pre_post_processors(cfg, pretrained_path=str(path), **on_device(device))
         self.n_action_steps = getattr(cfg, "n_action_steps", 1)
         self.recurrent = bool(getattr(self.policy, "recurrent", False))
         self.generator = torch.Generator(device=device).manual_seed(seed)
@@ -114,6 +114,13 @@ def run_episodes(env: CrowdNavVectorEnv, policy, split: str, n_episodes: int,
             bar.set_postfix(sr=f"{np.mean([r.event == 'success' for r in records.values()]):.3f}")
     bar.close()
     return [records[s] for s in seeds]
+
+
+def on_device(device: str) -> dict:
+    """``make_pre_post_processors`` overrides that put a saved preprocessor's inputs on ``device``:
+    its device step otherwise keeps the device the checkpoint was trained on (a GPU-trained policy
+    would fail on a CPU machine), as ``lerobot-eval`` and ``lerobot-train`` override it too."""
+    return {"preprocessor_overrides": {"device_processor": {"device": str(device)}}}
 
 
 def json_safe(value):

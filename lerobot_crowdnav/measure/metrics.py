@@ -24,6 +24,10 @@ from dataclasses import asdict, dataclass
 
 from ..sim.engine import EVENT_NAMES, HUMAN_COLLISION, SUCCESS, TIMEOUT, WALL_COLLISION
 
+# The metric definitions' version, saved with every evaluation: one saved under another is run
+# again, not reused (2: NT and ITR as CrowdNav++ counts them, 2026-11-28).
+METRICS_VERSION = 2
+
 
 @dataclass
 class EpisodeRecord:

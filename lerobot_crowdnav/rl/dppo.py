@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from ..checkpoint_files import CRITIC, WEIGHTS
 from ..layout import obs_dim
+from ..measure.episodes import on_device
 from ..sim.config import CrowdSimConfig
 from .agent import Scores, Step, check_observation_layout, read_policy_config
 from .config import DiffusionPPOConfig
@@ -180,7 +181,7 @@ def load_agent(path: Path, cfg: DiffusionPPOConfig, seed: int) -> DiffusionPPOAg
         policy.base.load_state_dict(weights)
         torch.manual_seed(seed)  # the fresh critic
         critic = make_critic(pcfg, cfg)
-    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path), **on_device("cpu"))
     return DiffusionPPOAgent(policy, critic, pre, post, cfg)
 
 
