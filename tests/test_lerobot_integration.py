@@ -163,7 +163,7 @@ def test_make_env_returns_native_vector_env_with_dict_obs():
     envs = make_env(cfg, n_envs=3)
     assert list(envs) == ["crowdnav"] and list(envs["crowdnav"]) == [0]
     env = envs["crowdnav"][0]
-    assert type(env) is CrowdNavVectorEnv
+    assert type(env) is CrowdNavVectorEnv and env.freeze_ended
     assert env.num_envs == 3 and env.obs_mode == "dict" and env.render_mode == "rgb_array"
     assert env.config.task == "CrowdNav-v0" and not env.config.bounded
     assert env.call("_max_episode_steps") == (env.config.max_steps,) * 3
@@ -292,8 +292,6 @@ def test_lerobot_eval_policy_runs_on_crowdnav():
     ref = _straight_reference(cfg.resolve(), list(range(start, start + n_episodes)))
     assert [r["event"] for r in ref] == ["wall_collision"] + ["human_collision"] * 3 + ["success"] * 2
     assert [bool(e["success"]) for e in per_ep] == [r["success"] for r in ref]
-    # Rewards are computed on the positions before the move, so the first step of the episode that
-    # autoreset starts (which lerobot's mask keeps) adds nothing here: sums are episode returns.
     for e, r in zip(per_ep, ref, strict=True):
         assert e["sum_reward"] == pytest.approx(r["return"], abs=1e-4)
     agg = info["aggregated"]
@@ -301,6 +299,28 @@ def test_lerobot_eval_policy_runs_on_crowdnav():
     assert agg["pc_success"] == pytest.approx(100 / 3)
     assert agg["avg_sum_reward"] == pytest.approx(np.mean([r["return"] for r in ref]), abs=1e-4)
     assert "video_paths" not in info
+
+
+def test_lerobot_eval_sums_stop_at_the_episode_end():
+    """lerobot's mask keeps the step after each episode's end. Test seeds 0 and 1 side by side: the
+    slot that ends first autoresets into seed 2, which starts against a wall (-20 at its first
+    step); the env reports nothing more for an ended slot, so each sum is its episode's return."""
+    cfg = CrowdNavEnvConfig(task="BoundedCrowdNav-v0")
+    env = make_env(cfg, n_envs=2)["crowdnav"][0]
+    policy = _GoToGoalPolicy(_GoToGoalConfig())
+    env_pre, env_post = make_env_pre_post_processors(cfg, policy.config)
+    post = PolicyProcessorPipeline(steps=[], to_transition=policy_action_to_transition,
+                                   to_output=transition_to_policy_action)
+    info = eval_policy(env, policy, env_pre, env_post, PolicyProcessorPipeline(steps=[]), post, n_episodes=2,
+                       max_episodes_rendered=0, start_seed=TEST_SEED0)
+    ref = _straight_reference(cfg.resolve(), [TEST_SEED0, TEST_SEED0 + 1, TEST_SEED0 + 2])
+    assert ref[2]["event"] == "wall_collision" and ref[2]["return"] <= -20  # what the first to end runs into
+    assert [e["sum_reward"] for e in info["per_episode"]] == pytest.approx([r["return"] for r in ref[:2]], abs=1e-4)
+    # the env's own records are untouched: a fresh rollout starts unfrozen
+    obs, _ = env.reset(seed=[TEST_SEED0 + 2, TEST_SEED0 + 3])
+    _, reward, terminated, _, _ = env.step(np.zeros((2, 2), np.float32))
+    assert terminated[0] and reward[0] <= -20
+    env.close()
 
 
 def test_dataset_stack_prints_no_library_traceback():

@@ -106,12 +106,16 @@ class CrowdNavVectorEnv(VectorEnv):
     reads as ``observation.state``); ``robot_policy`` may replace the actions by a built-in
     policy's (``"orca"`` or ``"straight"``), ignoring the ones passed to ``step``. With
     ``autoreset=False`` an ended slot is left as it is (and keeps stepping if asked to).
+    ``freeze_ended=True`` (lerobot's env) zeroes the reward and success of a slot whose episode
+    has ended, until the next ``reset``: lerobot's rollout keeps the step after an episode's end in
+    its reward sums, which gymnasium's next-step autoreset makes empty and this same-step
+    autoreset would make the next episode's first (-20 when it starts against a wall).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4, "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int = 1, render_mode: str | None = None, obs_mode: str = "flat",
-                 robot_policy: str | None = None, autoreset: bool = True,
+                 robot_policy: str | None = None, autoreset: bool = True, freeze_ended: bool = False,
                  config: CrowdSimConfig | None = None, **config_fields: Any):
         if config is not None and config_fields:
             raise ValueError("pass either config or config fields, not both")
@@ -129,6 +133,8 @@ class CrowdNavVectorEnv(VectorEnv):
         self.obs_mode = obs_mode
         self.robot_policy = robot_policy
         self.autoreset = autoreset
+        self.freeze_ended = freeze_ended
+        self._ended = np.zeros(num_envs, np.bool_)  # since the last reset (freeze_ended)
         obs_space, act_space = _spaces(self.config)
         if obs_mode == "dict":
             obs_space = gym.spaces.Dict({"agent_pos": obs_space})
@@ -196,6 +202,7 @@ class CrowdNavVectorEnv(VectorEnv):
         self._seeded = True
         self._next_seed = int(seeds.max()) + 1
         self._start(np.arange(self.num_envs), seeds)
+        self._ended[:] = False
         info = {"seed": self.sim.seeds.copy()}
         return self._obs(self.sim.obs.copy()), info
 
@@ -236,6 +243,12 @@ class CrowdNavVectorEnv(VectorEnv):
             info["_final_info"] = done.copy()
             if self.autoreset:
                 self._start(idx, self._take_seeds(len(idx)))
+        if self.freeze_ended:
+            frozen, self._ended = self._ended, self._ended | done
+            reward = np.where(frozen, 0.0, reward)
+            for part in (info, info.get("final_info", {})):
+                if "is_success" in part:
+                    part["is_success"] = part["is_success"] & ~frozen
         return self._obs(self.sim.obs.copy()), reward, terminated, truncated, info
 
     def _step_info(self, res) -> dict[str, np.ndarray]:

@@ -39,6 +39,8 @@ class CrowdNavEnvConfig(CrowdSimConfig, EnvConfig):
         return {"config": self.resolve()}
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):
-        """One native batched env (``use_async_envs`` is moot: the batch is one compiled call)."""
-        env = CrowdNavVectorEnv(n_envs, render_mode="rgb_array", obs_mode="dict", config=self.resolve())
+        """One native batched env (``use_async_envs`` is moot: the batch is one compiled call),
+        whose ended slots report nothing more until the next rollout (``freeze_ended``)."""
+        env = CrowdNavVectorEnv(n_envs, render_mode="rgb_array", obs_mode="dict", freeze_ended=True,
+                                config=self.resolve())
         return {self.type: {0: env}}
