@@ -11,6 +11,7 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from conftest import HF_DATASETS_CACHE, make_tiny_checkpoint
+from lerobot_crowdnav.data.collect import main as collect_main
 from lerobot_crowdnav.data.dagger import ROUND_SEEDS, main as dagger_main, teacher_snippets
 from lerobot_crowdnav.data.dataset import COLLECTION_FILE
 from lerobot_crowdnav.data.hub import policy_card
@@ -133,3 +134,27 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert resume.startswith("lerobot-train --config_path=") and resume.endswith(" --resume=true --steps=4")
     with pytest.raises(ValueError, match="bc_dagger_at"):
         MainConfig(models=None, bc_dagger_at=[0]).validate()
+
+
+def test_more_demonstrations_are_refused_after_a_round_and_nothing_changes(tmp_path):
+    """collect_orca.py --resume would go on from the last committed seed, a learner's, count the
+    snippets as demonstrations and rewrite the card without its DAgger section; also for a round
+    committed and killed before its record."""
+    policy = make_tiny_checkpoint(tmp_path)  # its 8-episode dataset at tmp_path/ds
+    root = tmp_path / "ds"
+    dagger_main([f"--policy_path={policy}", f"--root={root}", "--round=1", "--episodes=4", "--every=7", "--batch_size=4"])
+    resume = ["--episodes=16", "--batch_size=8", f"--root={root}", f"--repo_id=local/{tmp_path.name}", "--resume=true"]
+
+    def files() -> dict[Path, bytes]:
+        return {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+    for recorded in (True, False):
+        if not recorded:
+            collection = json.loads((root / COLLECTION_FILE).read_text())
+            del collection["dagger"]
+            (root / COLLECTION_FILE).write_text(json.dumps(collection))
+        before = files()
+        with pytest.raises(SystemExit, match="DAgger rounds were aggregated into .*collect the demonstrations you need "
+                                             "into a new --root, then run the DAgger rounds on it again"):
+            collect_main(resume)
+        assert files() == before

@@ -152,6 +152,64 @@ def test_bad_input_is_refused_and_loses_nothing(dataset_root, tmp_path):
     (tmp_path / "other" / "notes.txt").write_text("not a dataset")
     with pytest.raises(SystemExit, match="no dataset to resume"):
         collect(tmp_path / "other", "--resume=true")
+    # a mistyped --root: --overwrite deletes a dataset or an empty directory only, and a file is no --root
+    with pytest.raises(SystemExit, match=r"--overwrite: .*other is not a LeRobotDataset \(no meta/info.json\)"):
+        collect(tmp_path / "other", "--overwrite=true")
+    assert (tmp_path / "other" / "notes.txt").read_text() == "not a dataset"
+    with pytest.raises(SystemExit, match=r"^error: --root=.*notes.txt is a file, not a dataset directory"):
+        collect(tmp_path / "other" / "notes.txt")
+    (tmp_path / "empty").mkdir()
+    collect(tmp_path / "empty", "--overwrite=true", episodes=2, batch_size=2)
+    collect(tmp_path / "empty", "--overwrite=true", "--seed=5", episodes=2, batch_size=2)
+    assert [LeRobotDataset(REPO, root=tmp_path / "empty").meta.episodes[i]["seed"] for i in range(2)] == [5, 6]
+
+
+def test_blocks_past_chunks_size_go_to_the_next_chunk_and_load_in_order(dataset_root, tmp_path, monkeypatch):
+    """Blocks are laid out as lerobot v3.0 lays out its files (its own ``update_chunk_file_indices``):
+    ``chunks_size`` files to a chunk directory, then the next, and each episode's ``data/`` and
+    ``meta/episodes/`` chunk and file indices say where it lies. Every block in chunk-000 would put
+    file-1000 before file-101 in the loader's name order and misalign the rows; 3 files a chunk
+    stand in for lerobot's 1,000 here. A resume finds the blocks across chunks too."""
+    import lerobot.datasets.feature_utils as feature_utils
+    import pyarrow.parquet as pq
+    from lerobot.datasets.utils import DEFAULT_DATA_PATH, DEFAULT_EPISODES_PATH, update_chunk_file_indices
+
+    from lerobot_crowdnav.data import fast_loader
+
+    monkeypatch.setattr(feature_utils, "DEFAULT_CHUNK_SIZE", 3)
+    root = tmp_path / "chunks"
+    collect(root, episodes=4, batch_size=1)
+    collect(root, "--resume=true", episodes=8, batch_size=1)  # one episode a block: 8 blocks
+    assert json.loads((root / "meta/info.json").read_text())["chunks_size"] == 3
+    where = [(0, 0)]
+    for _ in range(7):
+        where.append(update_chunk_file_indices(*where[-1], 3))
+    for pattern in (DEFAULT_DATA_PATH, DEFAULT_EPISODES_PATH):
+        files = [root / pattern.format(chunk_index=c, file_index=f) for c, f in where]
+        assert sorted(root.glob(pattern.split("/chunk-")[0] + "/*/*.parquet")) == files
+
+    ds = LeRobotDataset(REPO, root=root)
+    episodes = ds.meta.episodes
+    assert [(episodes[e]["data/chunk_index"], episodes[e]["data/file_index"]) for e in range(8)] == where
+    assert [(episodes[e]["meta/episodes/chunk_index"], episodes[e]["meta/episodes/file_index"]) for e in range(8)] == where
+    for e in range(8):  # the file that the episode's indices name holds its rows
+        rows = pq.read_table(root / ds.meta.get_data_file_path(e), columns=["episode_index"])
+        assert set(rows["episode_index"].to_pylist()) == {e}
+    assert [episodes[e]["seed"] for e in range(8)] == list(range(8))
+    np.testing.assert_array_equal(np.asarray(ds.hf_dataset["index"]), np.arange(len(ds)))
+    # the rows of an uninterrupted collection in blocks of 8, one chunk: the same seeds, the same frames
+    same = LeRobotDataset(REPO, root=dataset_root).hf_dataset.select(range(len(ds)))
+    for key in ("observation.state", "action", "episode_index", "frame_index"):
+        np.testing.assert_array_equal(np.asarray(ds.hf_dataset[key]), np.asarray(same[key]))
+    was = fast_loader.is_installed()
+    try:
+        assert fast_loader.install()
+        items = ds.__getitems__(list(range(len(ds))))
+        assert [int(item["index"]) for item in items] == list(range(len(ds)))
+        np.testing.assert_array_equal(torch.stack([item["observation.state"] for item in items]).numpy(),
+                                      np.asarray(same["observation.state"]))
+    finally:
+        fast_loader.install() if was else fast_loader.uninstall()
 
 
 def test_hub_dir_round_trip_and_overwrite(dataset_root, tmp_path):

@@ -8,6 +8,7 @@ resumes and publishes it with no change elsewhere."""
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -26,6 +27,7 @@ from lerobot_crowdnav.rl.config import DiffusionPPOConfig, PPOConfig
 from lerobot_crowdnav.rl.families import Family, register
 from lerobot_crowdnav.rl.loop import Collector, update
 from lerobot_crowdnav.rl.ppo import RunningRewardScaler
+from lerobot_crowdnav.rl.run_log import RunLog, read_progress
 
 HORIZON = 4
 
@@ -189,6 +191,33 @@ def train_gaussian(out: Path, *extra: str) -> list[dict]:
     return [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]
 
 
+def tensorboard_scalars(out: Path, tag: str) -> list[tuple[int, float]]:
+    """(step, value) of one tag as TensorBoard shows it: restarts purged."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(out / "tensorboard"))
+    events.Reload()
+    return [(e.step, e.value) for e in events.Scalars(tag)]
+
+
+def test_a_resumed_run_log_keeps_the_history_up_to_the_checkpoint_and_drops_what_came_after(tmp_path):
+    """The interrupted run logged iterations 0-3 (32 env steps each) but was killed after its
+    checkpoint at iteration 2 (env step 64); the resumed run logs iterations 3 and 4 again.
+    TensorBoard's step is the env step, so the purge must count in env steps too."""
+    no_wandb = SimpleNamespace(enable=False)
+    interrupted = RunLog(tmp_path, True, 0, False, no_wandb, {})
+    for i in range(4):
+        interrupted.log({"iteration": i, "env_steps": 32 * i, "x": float(i)})
+    interrupted.writer.close()  # killed: no training curves
+    time.sleep(1)  # event files are named by the second they were opened in and read in name order
+    resumed = RunLog(tmp_path, True, 64, True, no_wandb, {})
+    for i in (3, 4):
+        resumed.log({"iteration": i, "env_steps": 32 * i, "x": 10.0 * i})
+    resumed.writer.close()
+    assert tensorboard_scalars(tmp_path, "x") == [(0, 0.0), (32, 1.0), (64, 2.0), (96, 30.0), (128, 40.0)]
+    assert [r["x"] for r in read_progress(tmp_path)] == [0.0, 1.0, 2.0, 30.0, 40.0]
+
+
 def test_a_registered_family_trains_checkpoints_and_resumes_through_the_ppo_cli(tmp_path):
     straight = train_gaussian(tmp_path / "a", "--env_steps=96")
     path = tmp_path / "a" / "checkpoints" / "last" / "pretrained_model"
@@ -206,6 +235,9 @@ def test_a_registered_family_trains_checkpoints_and_resumes_through_the_ppo_cli(
         assert resumed[i]["loss/value_loss"] == straight[i]["loss/value_loss"]
     resumed_path = tmp_path / "b" / "checkpoints" / "last" / "pretrained_model"
     assert (path / WEIGHTS).read_bytes() == (resumed_path / WEIGHTS).read_bytes()  # the last update too
+    # TensorBoard keeps the first run's iteration (env step 32) and has the straight run's curve
+    assert tensorboard_scalars(tmp_path / "b", "loss/value_loss") == tensorboard_scalars(tmp_path / "a", "loss/value_loss")
+    assert [step for step, _ in tensorboard_scalars(tmp_path / "b", "loss/value_loss")] == [32, 64, 96]
     assert "A Gaussian MLP policy (32 hidden units)" in str(policy_card(path, "local/gaussian"))
     (path / POLICY_CONFIG).write_text(json.dumps({"type": "unknown"}))
     with pytest.raises(ValueError, match="'unknown' policy, which has no model card"):

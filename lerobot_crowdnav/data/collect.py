@@ -3,7 +3,8 @@
 The built-in ORCA robot drives the batched simulator on consecutive train seeds (``--seed``,
 ``--seed + 1``, ...), a block of ``--batch_size`` episodes at a time; the dataset holds the first
 ``--episodes`` episodes of that stream that ``--keep`` accepts, in seed order. So an interrupted
-run resumed with ``--resume`` ends with exactly the dataset an uninterrupted one writes.
+run resumed with ``--resume`` ends with exactly the dataset an uninterrupted one writes. A dataset
+that DAgger rounds were aggregated into takes no more demonstrations.
 """
 
 from __future__ import annotations
@@ -17,12 +18,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
+from lerobot.datasets.io_utils import load_info
 from tqdm import tqdm
 
 from .. import fault
 from ..cli import run_cli
-from ..sim.config import SEED_SPLITS, CrowdSimConfig
-from .dataset import DemonstrationWriter, outcome_counts
+from ..sim.config import DAGGER_SEED_BASE, SEED_SPLITS, CrowdSimConfig
+from .dataset import COLLECTION_FILE, DemonstrationWriter, committed_episodes_files, outcome_counts
 from .hub import dataset_card, push_dataset_to_dir, split_repo_id
 from ..sim.engine import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
 
@@ -46,9 +49,9 @@ class CollectConfig:
     # better policy, see docs/dataset.md) or all (every outcome).
     keep: str = "success"
     # Complete an interrupted collection in root to --episodes, with the same seeds (an empty or
-    # missing root: collect from scratch).
+    # missing root: collect from scratch; refused once DAgger rounds were aggregated into it).
     resume: bool = False
-    # Delete an existing root and collect from scratch.
+    # Delete an existing root (a LeRobotDataset or an empty directory) and collect from scratch.
     overwrite: bool = False
     # Also write the Hub repository layout to <dir>/datasets/<org>/<name>/.
     push_to_hub_dir: Path | None = None
@@ -73,13 +76,36 @@ class CollectConfig:
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
         root = Path(self.root or Path("outputs/datasets") / self.repo_id)
-        if root.exists() and any(root.iterdir()) and not (self.resume or self.overwrite):
+        if root.exists() and not root.is_dir():
+            raise FileExistsError(f"--root={root} is a file, not a dataset directory: pass a directory")
+        filled = root.exists() and any(root.iterdir())
+        if filled and not (self.resume or self.overwrite):
             raise FileExistsError(f"{root} exists and is not empty: pass --resume=true to complete it, "
                                   "--overwrite=true to replace it, or another --root")
-        if self.resume and root.exists() and any(root.iterdir()) and not (root / "meta/info.json").exists():
+        if self.resume and filled and not (root / "meta/info.json").exists():
             raise FileNotFoundError(f"--resume: {root} holds no dataset to resume")
+        if self.overwrite and filled and not (root / "meta/info.json").exists():
+            raise FileExistsError(f"--overwrite: {root} is not a LeRobotDataset (no meta/info.json) and is left as "
+                                  "it is: check --root, or delete it yourself")
+        if self.resume and (root / COLLECTION_FILE).exists() and holds_dagger_rounds(root):
+            raise ValueError(f"--resume: DAgger rounds were aggregated into {root}, and demonstrations cannot follow "
+                             "them (they would be drawn from the learners' seeds and the card would lose the rounds); "
+                             "collect the demonstrations you need into a new --root, then run the DAgger rounds on it again")
         self.env.resolve()
         return root
+
+
+def holds_dagger_rounds(root: Path) -> bool:
+    """Whether DAgger rounds were aggregated into the collection at ``root``: recorded ones, or one
+    committed and killed before its record (episodes from the learners' seed blocks, which the
+    demonstrations, walking up from a seed below them, do not reach)."""
+    collection = json.loads((root / COLLECTION_FILE).read_text())
+    if collection.get("dagger"):
+        return True
+    if collection["seed"] >= DAGGER_SEED_BASE:
+        return False
+    return any(pq.read_table(f, columns=["seed"]).column("seed").to_numpy().max() >= DAGGER_SEED_BASE
+               for f in committed_episodes_files(root, load_info(root)))
 
 
 def orca_episodes(sim: CrowdSim, first_seed: int) -> Iterator[dict]:

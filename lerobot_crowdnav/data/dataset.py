@@ -24,10 +24,13 @@ over every episode by lerobot's own ``aggregate_feature_stats``, one feature at 
 from the committed episodes files (a DAgger round makes each labelled state an episode: holding
 every episode's statistics in memory took gigabytes). Each block is committed by atomic renames (data, episodes,
 stats, info last), so a killed collection leaves the blocks already committed, which load.
+Block files lie where lerobot v3.0 puts its own: ``chunks_size`` files to a chunk directory, then
+the next chunk, so that their names sort in block order.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import shutil
 import signal
@@ -41,6 +44,7 @@ from lerobot.datasets.compute_stats import aggregate_feature_stats
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.feature_utils import get_hf_features_from_features
 from lerobot.datasets.io_utils import load_info, write_info, write_stats
+from lerobot.datasets.utils import DEFAULT_EPISODES_PATH
 
 from .. import fault
 from ..sim.config import CrowdSimConfig
@@ -51,8 +55,6 @@ FPS = 4
 TASK = "Navigate to the goal through the crowd."
 STAT_QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 COLLECTION_FILE = "meta/crowdnav_collection.json"  # what was collected, for --resume checks
-DATA_FILE = "data/chunk-000/file-{:03d}.parquet"
-EPISODES_FILE = "meta/episodes/chunk-000/file-{:03d}.parquet"
 
 
 def observation_names(cfg: CrowdSimConfig) -> list[str]:
@@ -75,6 +77,29 @@ def features(cfg: CrowdSimConfig) -> dict:
         "next.done": {"dtype": "bool", "shape": (1,), "names": None},
         "next.success": {"dtype": "bool", "shape": (1,), "names": None},
     }
+
+
+def block_location(n: int, chunks_size: int) -> dict[str, int]:
+    """``chunk_index`` and ``file_index`` of the n-th block (from 0): where lerobot's own writer puts
+    its n-th file (``update_chunk_file_indices`` from chunk 0, file 0). lerobot's loader reads
+    ``*/*.parquet`` in name order: with at most 1,000 three-digit files a chunk, block order."""
+    chunk, file = divmod(n, chunks_size)
+    return {"chunk_index": chunk, "file_index": file}
+
+
+def committed_episodes_files(root: Path, info) -> list[Path]:
+    """The episodes files of the committed blocks of the dataset at ``root``, in order; ``info``:
+    its ``meta/info.json``. Reads only."""
+    out, total = [], 0
+    for n in itertools.count():
+        f = root / DEFAULT_EPISODES_PATH.format(**block_location(n, info.chunks_size))
+        if not f.exists():
+            break
+        total += pq.read_metadata(f).num_rows
+        if total > info.total_episodes:
+            break  # renamed but not recorded in info.json: not committed
+        out.append(f)
+    return out
 
 
 def _episode_stats(columns: dict[str, np.ndarray], bounds: np.ndarray) -> list[dict]:
@@ -155,30 +180,30 @@ class DemonstrationWriter:
         if changed:
             detail = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
             raise ValueError(f"--resume with different settings than the existing collection ({detail})")
+        self.info = load_info(self.root)
+        files = committed_episodes_files(self.root, self.info)
+        found = sum(pq.read_metadata(f).num_rows for f in files)
+        if found != self.info.total_episodes:  # the cleanup below would delete the blocks not found
+            raise ValueError(f"{self.root}: meta/info.json counts {self.info.total_episodes} episodes, the block "
+                             f"files where lerobot v3.0 puts them hold {found}; collect into a new --root")
+        self.n_files = len(files)
         # Remove what an interrupted commit may have left beyond the committed blocks.
         for tmp in sorted(self.root.rglob("*.tmp"), reverse=True):
             shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
-        self.info = load_info(self.root)
-        files = self._committed_files()
-        self.n_files = len(files)
-        for pattern in (DATA_FILE, EPISODES_FILE):
-            for extra in sorted(self.root.glob(pattern.replace("{:03d}", "*")))[self.n_files:]:
+        committed = {p for n in range(self.n_files) for p in self._block_files(n)}
+        for pattern in ("data/*/*.parquet", "meta/episodes/*/*.parquet"):
+            for extra in sorted(set(self.root.glob(pattern)) - committed):
                 extra.unlink()
 
-    def _committed_files(self) -> list[Path]:
-        """The episodes files of the committed blocks, in order."""
-        out, total = [], 0
-        for f in sorted(self.root.glob(EPISODES_FILE.replace("{:03d}", "*"))):
-            total += pq.read_metadata(f).num_rows
-            if total > self.info.total_episodes:
-                break  # renamed but not recorded in info.json: not committed
-            out.append(f)
-        return out
+    def _block_files(self, n: int) -> tuple[Path, Path]:
+        """The data and episodes files of the n-th block."""
+        where = block_location(n, self.info.chunks_size)
+        return self.root / self.info.data_path.format(**where), self.root / DEFAULT_EPISODES_PATH.format(**where)
 
     def committed_blocks(self) -> list[list[dict]]:
         """``{episode_index, seed, event, length}`` of each committed block's episodes."""
         return [pq.read_table(f, columns=["episode_index", "seed", "event", "length"]).to_pylist()
-                for f in self._committed_files()]
+                for f in committed_episodes_files(self.root, self.info)]
 
     def append(self, episodes: list[dict]) -> None:
         """Commit a block of episodes; each is ``{seed, event, obs (T, D), action (T, 2),
@@ -216,13 +241,13 @@ class DemonstrationWriter:
         arrays = {k: (fixed(v) if v.ndim == 2 else pa.array(v)) for k, v in columns.items()}
         data = pa.table(arrays).cast(self.hf_features.arrow_schema)
 
-        file_idx = self.n_files
+        where = block_location(self.n_files, self.info.chunks_size)
         ep_rows = {
             "episode_index": np.arange(first_ep, first_ep + len(episodes)),
             "tasks": [[TASK]] * len(episodes),
             "length": lengths,
-            "data/chunk_index": np.zeros(len(episodes), np.int64),
-            "data/file_index": np.full(len(episodes), file_idx),
+            "data/chunk_index": np.full(len(episodes), where["chunk_index"]),
+            "data/file_index": np.full(len(episodes), where["file_index"]),
             "dataset_from_index": first_frame + bounds[:-1],
             "dataset_to_index": first_frame + bounds[1:],
             "seed": np.array([e["seed"] for e in episodes], np.int64),
@@ -231,8 +256,8 @@ class DemonstrationWriter:
         for key in columns:
             for stat in ep_stats[0][key]:
                 ep_rows[f"stats/{key}/{stat}"] = [s[key][stat].tolist() for s in ep_stats]
-        ep_rows["meta/episodes/chunk_index"] = np.zeros(len(episodes), np.int64)
-        ep_rows["meta/episodes/file_index"] = np.full(len(episodes), file_idx)
+        ep_rows["meta/episodes/chunk_index"] = np.full(len(episodes), where["chunk_index"])
+        ep_rows["meta/episodes/file_index"] = np.full(len(episodes), where["file_index"])
         ep_table = pa.table(ep_rows)
 
         # Aggregated over all episodes in order, not block by block: the same bits whatever the
@@ -242,8 +267,7 @@ class DemonstrationWriter:
         self.info.total_frames += n_frames
         self.info.splits = {"train": f"0:{self.info.total_episodes}"}
 
-        data_path = self.root / DATA_FILE.format(file_idx)
-        ep_path = self.root / EPISODES_FILE.format(file_idx)
+        data_path, ep_path = self._block_files(self.n_files)
         for p in (data_path, ep_path):
             p.parent.mkdir(parents=True, exist_ok=True)
         with _no_interrupt():
@@ -266,7 +290,7 @@ class DemonstrationWriter:
     def _aggregate(self, new: list[dict]) -> dict:
         """lerobot's ``aggregate_stats`` over the committed episodes and ``new``, in order, one
         feature at a time (the same arithmetic on the same stacked values, so the same bits)."""
-        files = self._committed_files()
+        files = committed_episodes_files(self.root, self.info)
         return {key: aggregate_feature_stats([*(s for f in files for s in _read_feature_stats(f, key)),
                                               *(s[key] for s in new)])
                 for key in new[0]}

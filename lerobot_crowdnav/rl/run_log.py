@@ -11,8 +11,10 @@ from ..measure.episodes import json_safe
 
 
 class RunLog:
-    def __init__(self, out: Path, enabled: bool, iteration: int, resume: bool, wandb_cfg, config: dict):
-        """``iteration``: the one the run starts from; a resumed run keeps the history up to it."""
+    def __init__(self, out: Path, enabled: bool, env_steps: int, resume: bool, wandb_cfg, config: dict):
+        """``env_steps``: the run's counter at its start. A resumed run keeps what was logged up to
+        it and drops what the interrupted run logged after its last checkpoint: TensorBoard's step
+        is the env step, so its purge starts right after it."""
         self.enabled, self.out = enabled, Path(out)
         self.records: list[dict] = []
         self.writer = self.wandb = None
@@ -21,11 +23,12 @@ class RunLog:
         self.out.mkdir(parents=True, exist_ok=True)
         self.progress = self.out / "progress.jsonl"
         if resume and self.progress.exists():  # keep the history up to the checkpoint resumed
-            self.records = [r for r in map(json.loads, self.progress.read_text().splitlines()) if r["iteration"] <= iteration]
+            self.records = [r for r in map(json.loads, self.progress.read_text().splitlines())
+                            if r["env_steps"] <= env_steps]
         self.progress.write_text("".join(json.dumps(r) + "\n" for r in self.records))
         from torch.utils.tensorboard import SummaryWriter
 
-        self.writer = SummaryWriter(self.out / "tensorboard", purge_step=iteration + 1 if resume else 0)
+        self.writer = SummaryWriter(self.out / "tensorboard", purge_step=env_steps + 1 if resume else 0)
         if wandb_cfg.enable:
             import wandb
 
