@@ -220,6 +220,13 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     pipeline_main(argv + ["--rerun_eval=true"])
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
 
+    # Another preset does not take the finished demonstrations: the resume they get refuses it.
+    datasets = {p: p.read_bytes() for p in (root / "datasets").rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit, match="different settings than the existing collection"):
+        pipeline_main(argv + ["--preset=crowdnavpp"])
+    assert {p: p.read_bytes() for p in (root / "datasets").rglob("*") if p.is_file()} == datasets
+    pipeline_main(argv)  # the run as it was
+
 
 def test_provenance_names_the_checkpoint_a_row_was_evaluated_from(tmp_path):
     """The trainer's ``best`` (with best.json) or a numbered checkpoint the main job chose."""

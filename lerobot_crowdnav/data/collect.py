@@ -95,6 +95,12 @@ class CollectConfig:
         return root
 
 
+def demonstration_env(env: CrowdSimConfig) -> CrowdSimConfig:
+    """The simulator the demonstrations are collected in (its ``to_dict()`` is the collection
+    record's ``env``): ``env`` without the intrusion look-ahead, which changes no trajectory."""
+    return dataclasses.replace(env, compute_intrusion=False).resolve()
+
+
 def holds_dagger_rounds(root: Path) -> bool:
     """Whether DAgger rounds were aggregated into the collection at ``root``: recorded ones, or one
     committed and killed before its record (episodes from the learners' seed blocks, which the
@@ -149,7 +155,7 @@ def orca_episodes(sim: CrowdSim, first_seed: int) -> Iterator[dict]:
 
 def collect(cfg: CollectConfig) -> dict:
     root = cfg.validate()
-    sim_cfg = dataclasses.replace(cfg.env, compute_intrusion=False).resolve()
+    sim_cfg = demonstration_env(cfg.env)
     collection = {"repo_id": cfg.repo_id, "seed": cfg.seed, "keep": cfg.keep, "policy": "orca",
                   "demonstrator": sim_cfg.orca_description,
                   "env": sim_cfg.to_dict(), "episodes": cfg.episodes}

@@ -23,7 +23,7 @@ from ..checkpoint_files import (BEST_INFO, FINETUNE_CONFIG, PRETRAINED_MODEL, TR
 from ..cli import machine_description
 from ..evaluation.report import Stage
 from ..rl.run_log import env_steps_by_device, read_progress
-from ..sim.config import PPO_STAGE2_ENV_SEED
+from ..sim.config import PPO_STAGE2_ENV_SEED, CrowdSimConfig
 from .config import MainConfig
 from .paths import (SHORT, RunPaths, collect_stage, crowdnavpp_stage, eval_stage, finetune_stage, pretrain_stage,
                     push_dataset_stage, push_policy_stage, select_stage)
@@ -79,12 +79,18 @@ class Training:
 
     # -- stages --------------------------------------------------------------------------------
     def collect(self, task: str) -> Stage:
+        """The demonstrations; a complete collection in another simulator (another preset) is not
+        taken: the resume it gets instead refuses the changed settings."""
+        from ..data.collect import demonstration_env
         from ..data.collect import main as collect_main
+        from ..data.dataset import COLLECTION_FILE
 
         root = self.paths.dataset_root(task)
         info = root / "meta" / "info.json"
+        env = demonstration_env(CrowdSimConfig(task=task, preset=self.cfg.preset)).to_dict()
         done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
-                and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos)
+                and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
+                and json.loads((root / COLLECTION_FILE).read_text())["env"] == json.loads(json.dumps(env)))
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
                 f"--repo_id={self.paths.repo_id(task)}", f"--root={root}"]
         resume = ["--resume=true"] if root.exists() else []
