@@ -356,3 +356,32 @@ def test_gym_make_imports_the_package_itself_with_module_syntax():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "(269,)"
+
+
+def test_a_respawn_keeps_clear_of_the_human_it_replaces_by_that_ones_radius():
+    """CrowdNav++ checks a respawned human's start against the human it replaces, still in its list
+    with its own radius: a start clear by twice the new radius but not by new + old is refused."""
+    from lerobot_crowdnav.sim.engine import _spawn_human, make_params, seed_rng
+
+    cfg = CrowdSimConfig(task="CrowdNav-v0").resolve()  # paper preset: radii drawn from [0.3, 0.5]
+    p, n = make_params(cfg), cfg.num_humans
+
+    def spawn(seed, old_at, r_old):
+        rng = np.zeros(4, np.uint64)
+        seed_rng(rng, seed)
+        far = 1000.0 + 10.0 * np.arange(2 * n, dtype=np.float64).reshape(n, 2)  # nobody else near
+        hp, hg, hr = far.copy(), far.copy(), np.full(n, 0.3)
+        hp[0] = hg[0] = old_at  # the human being replaced, at its goal
+        hr[0] = r_old
+        robot = np.array([-1000.0, -1000.0])
+        _spawn_human(0, n, rng, robot, robot.copy(), hp, np.zeros((n, 2)), hg, hr, np.ones(n), np.array([10.0]), p)
+        return hp[0].copy(), float(hr[0])
+
+    seed = next(s for s in range(100) if spawn(s, (2000.0, 2000.0), 0.3)[1] < 0.4)
+    first, r_new = spawn(seed, (2000.0, 2000.0), 0.3)  # the first candidate, nobody near it
+    r_old, discomfort = 0.5, cfg.discomfort_dist
+    d = (2 * r_new + discomfort + r_new + r_old + discomfort) / 2  # between the two clearances
+    old_at = first + np.array([d, 0.0])
+    start, _ = spawn(seed, old_at, r_old)
+    assert not np.array_equal(start, first)
+    assert np.linalg.norm(start - old_at) >= r_new + r_old + discomfort

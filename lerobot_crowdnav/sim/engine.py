@@ -213,22 +213,23 @@ def _clear_of_agents(x, y, r_self, skip, rp, rg, p, hp, hg, hr, n_check):
 def _spawn_human(i, n_check, rng, rp, rg, hp, hv, hg, hr, hvp, nd, p):
     """Generate human ``i`` (attributes, start on the circle, antipodal goal, zero velocity),
     rejection-sampled against the robot and humans ``0..n_check-1`` (itself included: a respawn
-    is checked against the human it replaces, as in CrowdNav++). With the quirk, the env's ORCA
-    neighbour distance ``nd[0]`` is redrawn first (CrowdNav++ ``Agent.__init__``)."""
+    is checked against the human it replaces, with that one's radius, as in CrowdNav++ while the
+    old human is still in its list). With the quirk, the env's ORCA neighbour distance ``nd[0]``
+    is redrawn first (CrowdNav++ ``Agent.__init__``)."""
     if p.nd_random:
         nd[0] = p.nd_lo + (p.nd_hi - p.nd_lo) * uniform(rng)
     if p.randomize:
-        hvp[i] = p.vpref_lo + (p.vpref_hi - p.vpref_lo) * uniform(rng)
-        hr[i] = p.radius_lo + (p.radius_hi - p.radius_lo) * uniform(rng)
+        v_pref = p.vpref_lo + (p.vpref_hi - p.vpref_lo) * uniform(rng)
+        radius = p.radius_lo + (p.radius_hi - p.radius_lo) * uniform(rng)
     else:
-        hvp[i] = p.human_vpref
-        hr[i] = p.human_radius
+        v_pref, radius = p.human_vpref, p.human_radius
     for _ in range(_MAX_REJECTIONS):
         a = uniform(rng) * 2.0 * math.pi
         x = p.circle_radius * math.cos(a) + uniform(rng) * p.start_noise
         y = p.circle_radius * math.sin(a) + uniform(rng) * p.start_noise
-        if _clear_of_agents(x, y, hr[i], -1, rp, rg, p, hp, hg, hr, n_check):
+        if _clear_of_agents(x, y, radius, -1, rp, rg, p, hp, hg, hr, n_check):
             break
+    hvp[i], hr[i] = v_pref, radius
     hp[i, 0], hp[i, 1] = x, y
     hg[i, 0], hg[i, 1] = -x, -y
     hv[i, 0], hv[i, 1] = 0.0, 0.0
