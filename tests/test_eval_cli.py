@@ -236,6 +236,8 @@ def test_a_saved_evaluation_is_reused_only_for_the_same_request(tmp_path, capsys
     for other in (["--env.preset=crowdnavpp"], ["--env.human_policy=social_force"], ["--eval.n_episodes=3"],
                   ["--eval.split=val"], ["--policy.type=orca"]):
         assert saved_result(parse(args + other)) is None, other
-    saved["request"]["metrics_version"] -= 1  # evaluated under an older metric definition
-    (tmp_path / "metrics.json").write_text(json.dumps(saved))
-    assert saved_result(parse(args)) is None
+    for version in ("metrics_version", "sim_version"):  # evaluated under older metrics, or episodes
+        older = json.loads(json.dumps(saved))
+        older["request"][version] -= 1
+        (tmp_path / "metrics.json").write_text(json.dumps(older))
+        assert saved_result(parse(args)) is None, version

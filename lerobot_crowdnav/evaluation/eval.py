@@ -25,6 +25,7 @@ from ..cli import machine_description, run_cli
 from ..measure.episodes import LearnedPolicy, json_safe, run_episodes
 from ..measure.metrics import METRICS_VERSION, compute_metrics, markdown_header, markdown_row
 from ..sim.config import SEED_SPLITS, CrowdSimConfig, split_seeds
+from ..sim.engine import SIM_VERSION
 from ..sim.envs import CrowdNavEnv, CrowdNavVectorEnv
 
 
@@ -122,8 +123,10 @@ class EvalConfig:
 
 def request(cfg: EvalConfig) -> dict:
     """What decides an evaluation's numbers (saved in metrics.json): the policy and its settings,
-    the resolved simulator, the split, the episode count and the metric definitions."""
-    asked = {"metrics_version": METRICS_VERSION, "policy": {"type": cfg.policy.name, **draccus.encode(cfg.policy)},
+    the resolved simulator and its episodes' version, the split, the episode count and the metric
+    definitions."""
+    asked = {"metrics_version": METRICS_VERSION, "sim_version": SIM_VERSION,
+             "policy": {"type": cfg.policy.name, **draccus.encode(cfg.policy)},
              "env": cfg.env.resolve().to_dict(), "split": cfg.eval.split, "n_episodes": cfg.eval.n_episodes}
     return json.loads(json.dumps(json_safe(asked), default=str))
 

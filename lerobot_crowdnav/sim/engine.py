@@ -54,6 +54,10 @@ from .orca import bounding_box, compute_new_velocity, insert_sorted, make_obstac
 
 # Episode events (``info["event"]``).
 RUNNING, SUCCESS, HUMAN_COLLISION, WALL_COLLISION, TIMEOUT = 0, 1, 2, 3, 4
+# The episodes' version, saved with every evaluation: bump it when a seed's episode changes (an
+# evaluation saved under another one is run again, not reused). 2: a respawn kept clear of the
+# human it replaces by that one's radius (2026-11-28).
+SIM_VERSION = 2
 EVENT_NAMES = ("running", "success", "human_collision", "wall_collision", "timeout")
 
 ROBOT_THETA = math.pi / 2  # holonomic robot: heading stays at its initial pi/2 (CrowdNav++)
