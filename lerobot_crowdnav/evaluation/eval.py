@@ -6,7 +6,9 @@
 
 Prints the markdown row ``SR | NT | PL | ITR | SD`` (+ CR, TR, OOB for the original variant) and
 writes ``<output_dir>/metrics.json``: the metrics (``sr, cr, tr, nt, pl, itr, sd, oob``; rates as
-fractions, seconds, metres), ``n_episodes``, the resolved env config and one record per episode.
+fractions, seconds, metres), ``n_episodes``, the resolved env config, the ``request`` it answers
+(:func:`request`: what the main job and the baselines compare before reusing it) and one record
+per episode.
 """
 
 from __future__ import annotations
