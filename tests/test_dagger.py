@@ -102,11 +102,12 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
 
     cfg = MainConfig(run="dagger", output_root=tmp_path, models=None, tasks=["BoundedCrowdNav-v0"], demos=8,
                      bc_steps=4, bc_batch_size=16, horizons=[1], bc_dagger_at=[2, 9], bc_dagger_episodes=2,
-                     bc_args=["--policy.velocity_dropout=0.5"])
+                     bc_args=["--policy.velocity_dropout=0.5"], demonstrator="current_state")
     cfg.validate()
     job = Training(cfg)
     task = "BoundedCrowdNav-v0"
     job.collect(task)
+    assert job.collect(task).wall_time_s is None  # the demonstrator's collection is complete: skipped
     cached = set(Path(HF_DATASETS_CACHE).rglob("*.arrow"))  # the process's (the suite's) datasets cache
     job.pretrain(task, 1, 1000)
     # lerobot-train's Arrow copies of the dataset went to the run folder, deleted after each segment
@@ -115,7 +116,10 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert data != job.paths.dataset_root(task)
     rounds = json.loads((data / COLLECTION_FILE).read_text())["dagger"]
     assert [r["round"] for r in rounds] == [1]  # the round at step 9 is past the budget: none
-    assert "dagger" not in json.loads((job.paths.dataset_root(task) / COLLECTION_FILE).read_text())
+    demos = json.loads((job.paths.dataset_root(task) / COLLECTION_FILE).read_text())
+    assert "dagger" not in demos
+    # the chosen demonstrator (not the preset's look-ahead robot) collects, and so labels the rounds
+    assert demos["env"]["orca_robot"] == json.loads((data / COLLECTION_FILE).read_text())["env"]["orca_robot"] == "current_state"
     last = job.paths.train_dir(task, 1, 1000) / "checkpoints" / "last"
     assert json.loads((last / "training_state/training_step.json").read_text())["step"] == 4
     train_cfg = json.loads((last / "pretrained_model/train_config.json").read_text())
@@ -134,6 +138,8 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert resume.startswith("lerobot-train --config_path=") and resume.endswith(" --resume=true --steps=4")
     with pytest.raises(ValueError, match="bc_dagger_at"):
         MainConfig(models=None, bc_dagger_at=[0]).validate()
+    with pytest.raises(ValueError, match="--demonstrator must be one of"):
+        MainConfig(models=None, demonstrator="current-state").validate()
 
 
 def test_more_demonstrations_are_refused_after_a_round_and_nothing_changes(tmp_path):

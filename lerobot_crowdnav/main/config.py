@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..evaluation.generalization import TRAINED, check_crowds
-from ..sim.config import CROWDS, SEED_SPLITS, TASKS
+from ..sim.config import CROWDS, ORCA_ROBOTS, SEED_SPLITS, TASKS
 
 # The trained models shipped in the repository (hub format: models/<org>/<name>), made by the
 # recipes (docs/recipes.md).
@@ -31,6 +31,10 @@ class MainConfig:
     preset: str = "paper"
     # ORCA demonstrations per task, successful episodes (paper: 3,000).
     demos: int = 300
+    # The ORCA robot that demonstrates and labels the DAgger rounds (look_ahead | current_state);
+    # null: the preset's (paper: look_ahead, CrowdNav++'s CrowdSimPred robot; crowdnavpp:
+    # current_state). current_state in the paper preset: docs/recipes.md, "A stronger teacher".
+    demonstrator: str | None = None
     # Pretraining steps of lerobot-train at bc_batch_size (see bc_epochs).
     bc_steps: int = 2000
     # > 0: pretrain for this many epochs over the demonstrations instead of bc_steps (paper: 200).
@@ -116,6 +120,8 @@ class MainConfig:
         if bad or not self.tasks:
             raise ValueError(f"--tasks must be a non-empty subset of {list(TASKS)}, got {self.tasks}")
         check_crowds(self.crowds, allow_empty=True)
+        if self.demonstrator is not None and self.demonstrator not in ORCA_ROBOTS:
+            raise ValueError(f"--demonstrator must be one of {list(ORCA_ROBOTS)} or null, got {self.demonstrator!r}")
         if any(h < 1 for h in self.horizons):
             raise ValueError(f"--horizons must be positive, got {self.horizons}")
         if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0 or self.select_top < 0:
