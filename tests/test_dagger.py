@@ -126,6 +126,7 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert train_cfg["dataset"]["root"] == str(data) and train_cfg["policy"]["velocity_dropout"] == 0.5
     assert Path(rounds[0]["policy"]).parent.name.lstrip("0") == "2"  # the round's learner: the step-2 checkpoint
     card = str(policy_card(last / "pretrained_model", "org/x"))  # the card says how it was pretrained
+    assert "demonstrations of CrowdNav++'s current-state ORCA robot" in card  # the chosen demonstrator
     assert ("; the robot's own velocity (the previous action) hidden from the policy in 50% of the training samples; "
             f"1 DAgger round aggregated into the demonstrations (2 episodes driven by the policy being trained, "
             f"{rounds[0]['snippets']:,} of their states labelled") in card

@@ -221,6 +221,7 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
     counts = parameter_counts(pretrained / WEIGHTS)
     critic_input = (finetune or {}).get("ppo", {}).get("critic_input", "latent")
     dataset = (train.get("dataset") or {}).get("repo_id")
+    collection = collection_record(train)
     lines = [
         f"# {repo_id}", "",
         "PDPO (diffusion policy for short-horizon planning in robot crowd navigation), a lerobot policy "
@@ -245,10 +246,12 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
            else "no critic (a BC policy: diffusion PPO adds one)."), "",
         "## Training", "",
         f"- Data: `{dataset}`" + (f" ({root})" if (root := (train.get("dataset") or {}).get("root"))
-                                  and not Path(root).is_absolute() else "") + ".",
+                                  and not Path(root).is_absolute() else "")
+        + (f": demonstrations of CrowdNav++'s {ORCA_ROBOT_CARD[robot]}" if (robot := collection.get("env", {}).get("orca_robot"))
+           in ORCA_ROBOT_CARD else "") + ".",
         f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
         f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}"
-        + "".join(f"; {remedy}" for remedy in pretraining_remedies(config, train)) + ".",
+        + "".join(f"; {remedy}" for remedy in pretraining_remedies(config, collection)) + ".",
     ]
     if finetune:
         ppo = finetune["ppo"]
@@ -280,22 +283,28 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
     return ModelCard(f"---\n{data.to_yaml()}\n---\n\n" + "\n".join(lines) + "\n")
 
 
-def pretraining_remedies(config: dict, train: dict) -> list[str]:
-    """What the pretraining did against the copycat shortcut (the policy copying the robot's own
-    velocity, the previous action), from the policy's config and, where the dataset is on this
-    machine, its DAgger rounds (``meta/crowdnav_collection.json``)."""
+def collection_record(train: dict) -> dict:
+    """The collection record (``meta/crowdnav_collection.json``: simulator, DAgger rounds) of the
+    dataset a policy was pretrained on, where that dataset is on this machine; else ``{}``."""
     import json
 
     from .dataset import COLLECTION_FILE
 
+    path = Path((train.get("dataset") or {}).get("root") or "") / COLLECTION_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def pretraining_remedies(config: dict, collection: dict) -> list[str]:
+    """What the pretraining did against the copycat shortcut (the policy copying the robot's own
+    velocity, the previous action), from the policy's config and its dataset's collection record
+    (DAgger rounds)."""
     remedies = []
     if p := config.get("velocity_dropout"):
         remedies.append("the robot's own velocity (the previous action) hidden from the policy "
                         + ("always" if p == 1 else f"in {p:.0%} of the training samples"))
     if (draws := config.get("noise_draws", 1)) > 1:
         remedies.append(f"{draws} diffusion-noise draws per sample")
-    collection = Path((train.get("dataset") or {}).get("root") or "") / COLLECTION_FILE
-    if collection.is_file() and (rounds := json.loads(collection.read_text()).get("dagger")):
+    if rounds := collection.get("dagger"):
         remedies.append(f"{len(rounds)} DAgger round{'s' * (len(rounds) > 1)} aggregated into the demonstrations "
                         f"({sum(r['learner_episodes'] for r in rounds):,} episodes driven by the policy being trained, "
                         f"{sum(r['snippets'] for r in rounds):,} of their states labelled with the ORCA demonstrator's chunk)")
