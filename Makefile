@@ -27,10 +27,8 @@ main: $(STAMP)
 tables: $(STAMP)
 	$(PY) -m lerobot_crowdnav.evaluation.tables $(TABLES_ARGS)
 
-# One worker per core (at most 4: a worker holds up to a few GB); a file's tests stay on one worker,
-# so its module fixtures (the tiny main job's run) are made once.
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto --maxprocesses=4 --dist loadfile
+	$(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(VENV)/bin/lerobot-crowdnav-bench
