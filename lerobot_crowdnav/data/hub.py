@@ -222,6 +222,7 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
     critic_input = (finetune or {}).get("ppo", {}).get("critic_input", "latent")
     dataset = (train.get("dataset") or {}).get("repo_id")
     collection = collection_record(train)
+    demonstrator = ORCA_ROBOT_CARD.get(collection.get("env", {}).get("orca_robot"))
     lines = [
         f"# {repo_id}", "",
         "PDPO (diffusion policy for short-horizon planning in robot crowd navigation), a lerobot policy "
@@ -247,8 +248,7 @@ def pdpo_card(pretrained: Path, repo_id: str, config: dict, metrics: dict | None
         "## Training", "",
         f"- Data: `{dataset}`" + (f" ({root})" if (root := (train.get("dataset") or {}).get("root"))
                                   and not Path(root).is_absolute() else "")
-        + (f": demonstrations of CrowdNav++'s {ORCA_ROBOT_CARD[robot]}" if (robot := collection.get("env", {}).get("orca_robot"))
-           in ORCA_ROBOT_CARD else "") + ".",
+        + (f": demonstrations of CrowdNav++'s {demonstrator}" if demonstrator else "") + ".",
         f"- Pretraining (behaviour cloning, lerobot-train): {train.get('steps')} steps at batch {train.get('batch_size')} "
         f"(AdamW lr {config.get('optimizer_lr')}, weight decay {config.get('optimizer_weight_decay')}), seed {train.get('seed')}"
         + "".join(f"; {remedy}" for remedy in pretraining_remedies(config, collection)) + ".",

@@ -87,13 +87,13 @@ class Training:
 
         root = self.paths.dataset_root(task)
         info = root / "meta" / "info.json"
-        robot = {"orca_robot": self.cfg.demonstrator} if self.cfg.demonstrator else {}
-        env = demonstration_env(CrowdSimConfig(task=task, preset=self.cfg.preset, **robot)).to_dict()
+        robot = self.cfg.demonstrator  # None: the preset's
+        env = demonstration_env(CrowdSimConfig(task=task, preset=self.cfg.preset, orca_robot=robot)).to_dict()
         done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
                 and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
                 and json.loads((root / COLLECTION_FILE).read_text())["env"] == json.loads(json.dumps(env)))
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
-                *(f"--env.{k}={v}" for k, v in robot.items()), f"--repo_id={self.paths.repo_id(task)}", f"--root={root}"]
+                *([f"--env.orca_robot={robot}"] if robot else []), f"--repo_id={self.paths.repo_id(task)}", f"--root={root}"]
         resume = ["--resume=true"] if root.exists() else []
         return self.runner.run(collect_stage(task), argv, done, lambda: collect_main(argv[2:] + resume))
 
