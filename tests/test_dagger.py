@@ -3,6 +3,7 @@ and a round aggregated into the LeRobotDataset that lerobot reads chunk by chunk
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -124,6 +125,9 @@ def test_the_main_job_pretrains_with_dagger_rounds_in_segments(tmp_path):
     assert json.loads((last / "training_state/training_step.json").read_text())["step"] == 4
     train_cfg = json.loads((last / "pretrained_model/train_config.json").read_text())
     assert train_cfg["dataset"]["root"] == str(data) and train_cfg["policy"]["velocity_dropout"] == 0.5
+    # published under its own name, never the look-ahead demonstrations' (the preset's here)
+    assert train_cfg["dataset"]["repo_id"] == "local/crowdnav_orca_bounded_current_state"
+    assert Training(dataclasses.replace(cfg, demonstrator=None)).repo_id(task) == "local/crowdnav_orca_bounded"
     assert Path(rounds[0]["policy"]).parent.name.lstrip("0") == "2"  # the round's learner: the step-2 checkpoint
     card = str(policy_card(last / "pretrained_model", "org/x"))  # the card says how it was pretrained
     assert "demonstrations of CrowdNav++'s current-state ORCA robot" in card  # the chosen demonstrator

@@ -34,6 +34,8 @@ class MainConfig:
     # The ORCA robot that demonstrates and labels the DAgger rounds (look_ahead | current_state);
     # null: the preset's (paper: look_ahead, CrowdNav++'s CrowdSimPred robot; crowdnavpp:
     # current_state). current_state in the paper preset: docs/recipes.md, "A stronger teacher".
+    # Its demonstrations publish as crowdnav_orca_<task>, another robot's as
+    # crowdnav_orca_<task>_<robot>.
     demonstrator: str | None = None
     # Pretraining steps of lerobot-train at bc_batch_size (see bc_epochs).
     bc_steps: int = 2000

@@ -65,8 +65,11 @@ class RunPaths:
         """One policy's copy of the demonstrations that its DAgger rounds aggregate into."""
         return self.root / "datasets" / f"{SHORT[task]}_h{h}_s{seed}_dagger"
 
-    def repo_id(self, task: str) -> str:
-        return f"{self.hub_org}/crowdnav_orca_{SHORT[task]}"
+    def repo_id(self, task: str, orca_robot: str = "look_ahead") -> str:
+        """The demonstrations' name: the paper's look-ahead ORCA robot's plain, another
+        demonstrator's suffixed, so that the two never publish under one name."""
+        suffix = "" if orca_robot == "look_ahead" else f"_{orca_robot}"
+        return f"{self.hub_org}/crowdnav_orca_{SHORT[task]}{suffix}"
 
     def train_dir(self, task: str, h: int, seed: int) -> Path:
         return self.root / "train" / f"{SHORT[task]}_h{h}_s{seed}"

@@ -77,23 +77,31 @@ class Training:
         """The horizon of the "pretrained only" row and of the figures (PDPO's 5 when run)."""
         return 5 if 5 in self.cfg.horizons else next(iter(self.cfg.horizons), None)
 
+    def demonstration_env(self, task: str) -> CrowdSimConfig:
+        """The simulator the demonstrations come from, with ``--demonstrator`` (None: the preset's)."""
+        from ..data.collect import demonstration_env
+
+        return demonstration_env(CrowdSimConfig(task=task, preset=self.cfg.preset, orca_robot=self.cfg.demonstrator))
+
+    def repo_id(self, task: str) -> str:
+        return self.paths.repo_id(task, self.demonstration_env(task).orca_robot)
+
     # -- stages --------------------------------------------------------------------------------
     def collect(self, task: str) -> Stage:
         """The demonstrations; a complete collection in another simulator (another preset) is not
         taken: the resume it gets instead refuses the changed settings."""
-        from ..data.collect import demonstration_env
         from ..data.collect import main as collect_main
         from ..data.dataset import COLLECTION_FILE
 
         root = self.paths.dataset_root(task)
         info = root / "meta" / "info.json"
         robot = self.cfg.demonstrator  # None: the preset's
-        env = demonstration_env(CrowdSimConfig(task=task, preset=self.cfg.preset, orca_robot=robot)).to_dict()
+        env = self.demonstration_env(task).to_dict()
         done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
                 and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
                 and json.loads((root / COLLECTION_FILE).read_text())["env"] == json.loads(json.dumps(env)))
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
-                *([f"--env.orca_robot={robot}"] if robot else []), f"--repo_id={self.paths.repo_id(task)}", f"--root={root}"]
+                *([f"--env.orca_robot={robot}"] if robot else []), f"--repo_id={self.repo_id(task)}", f"--root={root}"]
         resume = ["--resume=true"] if root.exists() else []
         return self.runner.run(collect_stage(task), argv, done, lambda: collect_main(argv[2:] + resume))
 
@@ -124,7 +132,7 @@ class Training:
 
         data = self.pretrain_dataset(task, h, seed)
         segments = [*sorted(s for s in self.cfg.bc_dagger_at if s < steps), steps]
-        argv = ["lerobot-train", "--policy.type=pdpo", f"--policy.horizon={h}", f"--dataset.repo_id={self.paths.repo_id(task)}",
+        argv = ["lerobot-train", "--policy.type=pdpo", f"--policy.horizon={h}", f"--dataset.repo_id={self.repo_id(task)}",
                 f"--dataset.root={data}", "--policy.push_to_hub=false", f"--output_dir={out}",
                 f"--steps={segments[0]}", f"--batch_size={self.cfg.bc_batch_size}", f"--save_freq={max(1, steps // 4)}",
                 f"--log_freq={max(1, min(200, steps // 10))}", f"--num_workers={self.cfg.bc_num_workers}",
@@ -306,7 +314,7 @@ class Training:
 
         hub, short, seed = self.paths.hub, SHORT[task], self.cfg.seeds[0]
         if self.cfg.horizons:
-            repo, root = self.paths.repo_id(task), self.paths.dataset_root(task)
+            repo, root = self.repo_id(task), self.paths.dataset_root(task)
             argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=dataset", f"--root={root}",
                     f"--repo_id={repo}", f"--push_to_hub_dir={hub}", "--overwrite=true"]
             self.runner.run(push_dataset_stage(task), argv, (hub / "datasets" / repo).exists(),
