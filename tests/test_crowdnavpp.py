@@ -385,7 +385,13 @@ def test_tiny_training_run_writes_a_checkpoint_that_loads_and_evaluates(tmp_path
     assert "PPO from scratch for 240 environment steps (this checkpoint; the run's budget: 240)" in card
     eval_main([f"--policy.path={path}", "--eval.n_episodes=2", "--eval.split=val", "--env.preset=crowdnavpp",
                f"--output_dir={tmp_path / 'eval'}"])
-    assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["n_episodes"] == 2
+    metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert metrics["n_episodes"] == 2
+    # The run's last validation is this evaluation: same weights, seeds and deterministic actions,
+    # the intrusion test included (the training envs run without it).
+    assert metrics["itr"] > 0, "these two episodes must intrude for the comparison to mean anything"
+    assert records[2]["val/intrusion_rate"] == pytest.approx(metrics["itr"])
+    assert records[2]["val/success_rate"] == metrics["sr"]
     # lerobot's own evaluation loads it too (reset() per episode, memory carried by select_action).
     import subprocess
     import sys

@@ -14,7 +14,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import draccus
@@ -177,7 +177,9 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
     scaler = RunningRewardScaler(cfg.num_envs, cfg.ppo.gamma, cfg.ppo.reward_clip) if cfg.ppo.reward_scale_running else None
     collector = Collector(env, agent, scaler, torch.Generator(device=acc.device).manual_seed(cfg.seed * 1000 + rank))
     rng = np.random.default_rng([cfg.seed, rank])  # minibatch order
-    val_env = CrowdNavVectorEnv(cfg.val.n_episodes, config=sim_cfg) if main else None
+    # Validation runs the intrusion test (the same dynamics, a few episodes) so the curve shows ITR
+    # beside success: the paper's bar is on both.
+    val_env = CrowdNavVectorEnv(cfg.val.n_episodes, config=replace(sim_cfg, compute_intrusion=True)) if main else None
     carried = {} if source is None else {name: source / name for name in CARRIED_FILES}
     if source is not None and not resumed:
         carried[SOURCE_PREFIX + config_name] = source / config_name

@@ -16,7 +16,8 @@ EVENTS = EVENT_NAMES[1:]  # how an episode ends (not "running")
 
 def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> dict[str, float]:
     """The first ``n_episodes`` val seeds, one batched env, no exploration noise (fixed sampling
-    seed 0, so every validation of the same weights gives the same numbers)."""
+    seed 0, so every validation of the same weights gives the same numbers). ``val/intrusion_rate``
+    is ITR when ``env`` runs the intrusion test, else 0."""
     generator = torch.Generator(device=device).manual_seed(0)
     memory = agent.initial_memory(env.num_envs)
 
@@ -29,8 +30,9 @@ def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> di
 
     records = run_episodes(env, actor, "val", n_episodes, progress=False)
     m = compute_metrics(records, dt)
-    return {"val/success_rate": m["sr"], "val/collision_rate": m["cr"], "val/timeout_rate": m["tr"],
-            "val/navigation_time": m["nt"], "val/episode_return": float(np.mean([r.episode_return for r in records]))}
+    return {"val/success_rate": m["sr"], "val/collision_rate": m["cr"], "val/human_collision_rate": m["cr_human"],
+            "val/timeout_rate": m["tr"], "val/navigation_time": m["nt"], "val/intrusion_rate": m["itr"],
+            "val/episode_return": float(np.mean([r.episode_return for r in records]))}
 
 
 def episode_stats(episodes: list[dict], accelerator) -> dict[str, float]:
