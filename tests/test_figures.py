@@ -1,5 +1,6 @@
-"""The action-chunk figures: drawing functions on hand-made scenes (size, content, colours), and
-``lerobot_crowdnav.evaluation.figures`` (record_snapshots and the CLI) end to end on a tiny PDPO checkpoint."""
+"""The figures: the fine-tuning curves' panels; the action-chunk figures, drawing functions on
+hand-made scenes (size, content, colours), and ``lerobot_crowdnav.evaluation.figures``
+(record_snapshots and the CLI) end to end on a tiny PDPO checkpoint."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from conftest import make_tiny_checkpoint
 from PIL import Image
 
 from lerobot_crowdnav.evaluation import figures
-from lerobot_crowdnav.measure.plots import chunk_positions, plot_multimodality, plot_storyboard
+from lerobot_crowdnav.measure.plots import chunk_positions, plot_finetune_curves, plot_multimodality, plot_storyboard
 from lerobot_crowdnav.sim.config import CrowdSimConfig
 from lerobot_crowdnav.sim.envs import CrowdNavEnv, structured
 
@@ -104,6 +105,19 @@ def test_storyboard_grid_and_multimodality(tmp_path):
 def test_empty_snapshots_are_refused(tmp_path):
     with pytest.raises(ValueError, match="no snapshots"):
         plot_storyboard([], tmp_path / "x.png", SENSING, DT)
+
+
+def test_finetune_curves_draw_an_itr_panel_only_for_runs_that_logged_it(tmp_path):
+    """A run from before validation ran the intrusion test keeps its three panels (16 x 4 in at
+    120 dpi); one that logged ``val/intrusion_rate`` gets a fourth, 5 in wider."""
+    def records(itr):
+        return [{"env_steps": s, "train/success_rate": 0.5, "train/episode_return": 1.0, "time/wall_s": s / 100,
+                 "val/success_rate": 0.6, **({"val/intrusion_rate": itr} if itr is not None else {})}
+                for s in (0, 1000, 2000)]
+
+    old = Image.open(plot_finetune_curves({"old": records(None)}, tmp_path / "old.png")).size
+    new = Image.open(plot_finetune_curves({"old": records(None), "new": records(0.05)}, tmp_path / "new.png")).size
+    assert old == (16 * 120, 4 * 120) and new == (21 * 120, 4 * 120)
 
 
 # -- end to end on a tiny checkpoint --------------------------------------------------------------

@@ -28,13 +28,16 @@ def _smooth(y: np.ndarray, window: int) -> np.ndarray:
 def plot_finetune_curves(runs: dict[str, list[dict]], path: str | Path, smooth: int = 5) -> Path:
     """Training success rate and average episode reward against environment steps (the paper's
     fine-tuning figure), and success rate against training wall time, one line per run;
-    validation success rates as markers.
+    validation success rates as markers; a fourth panel with the validation intrusion rate when
+    some run logged it (runs from before validation ran the intrusion test did not).
 
     ``runs`` maps a label to the records of a run's ``progress.jsonl`` (keys ``env_steps``,
     ``train/success_rate``, ``train/episode_return``, ``time/wall_s`` and, where validated,
-    ``val/success_rate``).
+    ``val/success_rate`` and ``val/intrusion_rate``).
     """
-    fig, (ax_sr, ax_ret, ax_time) = plt.subplots(1, 3, figsize=(16, 4), dpi=120)
+    with_itr = any(r.get("val/intrusion_rate") is not None for records in runs.values() for r in records)
+    fig, axes = plt.subplots(1, 3 + with_itr, figsize=(16 + 5 * with_itr, 4), dpi=120)
+    ax_sr, ax_ret, ax_time = axes[:3]
     for i, (label, records) in enumerate(runs.items()):
         color = f"C{i}"
         column = lambda key: np.array([np.nan if r.get(key) is None else r[key] for r in records], dtype=float)  # noqa: E731
@@ -49,14 +52,20 @@ def plot_finetune_curves(runs: dict[str, list[dict]], path: str | Path, smooth: 
             ax_sr.plot(val[:, 0], 100 * val[:, 2], "o--", color=color, markersize=4, alpha=0.8, label=f"{label} (validation)")
             ax_time.plot(val[:, 1], 100 * val[:, 2], "o--", color=color, markersize=4, alpha=0.8,
                          label=f"{label} (validation)")
+        itr = np.array([(s, r["val/intrusion_rate"]) for s, r in zip(steps, records, strict=True)
+                        if r.get("val/intrusion_rate") is not None]).reshape(-1, 2)
+        if len(itr):
+            axes[3].plot(itr[:, 0], 100 * itr[:, 1], "o--", color=color, markersize=4, label=f"{label} (validation)")
     ax_sr.set(xlabel="environment steps", ylabel="success rate (%)", title="Success rate", ylim=(0, 100))
     ax_ret.set(xlabel="environment steps", ylabel="average episode reward", title="Average episode reward")
     ax_time.set(xlabel="training wall time (h)", ylabel="success rate (%)", title="Success rate against wall time",
                 ylim=(0, 100))
-    for ax in (ax_sr, ax_ret, ax_time):
+    if with_itr:
+        axes[3].set(xlabel="environment steps", ylabel="ITR (%)", title="Validation intrusion rate", ylim=(0, None))
+    for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    for ax in (ax_sr, ax_ret):
+    for ax in (ax_sr, ax_ret, *axes[3:]):
         ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
     fig.tight_layout()
     path = Path(path)
