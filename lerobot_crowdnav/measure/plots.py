@@ -52,10 +52,10 @@ def plot_finetune_curves(runs: dict[str, list[dict]], path: str | Path, smooth: 
             ax_sr.plot(val[:, 0], 100 * val[:, 2], "o--", color=color, markersize=4, alpha=0.8, label=f"{label} (validation)")
             ax_time.plot(val[:, 1], 100 * val[:, 2], "o--", color=color, markersize=4, alpha=0.8,
                          label=f"{label} (validation)")
-        itr = np.array([(s, r["val/intrusion_rate"]) for s, r in zip(steps, records, strict=True)
-                        if r.get("val/intrusion_rate") is not None]).reshape(-1, 2)
-        if len(itr):
-            axes[3].plot(itr[:, 0], 100 * itr[:, 1], "o--", color=color, markersize=4, label=f"{label} (validation)")
+        itr = column("val/intrusion_rate")
+        if not np.isnan(itr).all():
+            logged = ~np.isnan(itr)
+            axes[3].plot(steps[logged], 100 * itr[logged], "o--", color=color, markersize=4, label=f"{label} (validation)")
     ax_sr.set(xlabel="environment steps", ylabel="success rate (%)", title="Success rate", ylim=(0, 100))
     ax_ret.set(xlabel="environment steps", ylabel="average episode reward", title="Average episode reward")
     ax_time.set(xlabel="training wall time (h)", ylabel="success rate (%)", title="Success rate against wall time",

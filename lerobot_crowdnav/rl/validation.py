@@ -17,7 +17,7 @@ EVENTS = EVENT_NAMES[1:]  # how an episode ends (not "running")
 def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> dict[str, float]:
     """The first ``n_episodes`` val seeds, one batched env, no exploration noise (fixed sampling
     seed 0, so every validation of the same weights gives the same numbers). ``val/intrusion_rate``
-    is ITR when ``env`` runs the intrusion test, else 0."""
+    (ITR) only where ``env`` runs the intrusion test: without it the count would read 0."""
     generator = torch.Generator(device=device).manual_seed(0)
     memory = agent.initial_memory(env.num_envs)
 
@@ -30,8 +30,9 @@ def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> di
 
     records = run_episodes(env, actor, "val", n_episodes, progress=False)
     m = compute_metrics(records, dt)
+    itr = {"val/intrusion_rate": m["itr"]} if env.config.compute_intrusion else {}
     return {"val/success_rate": m["sr"], "val/collision_rate": m["cr"], "val/human_collision_rate": m["cr_human"],
-            "val/timeout_rate": m["tr"], "val/navigation_time": m["nt"], "val/intrusion_rate": m["itr"],
+            "val/timeout_rate": m["tr"], "val/navigation_time": m["nt"], **itr,
             "val/episode_return": float(np.mean([r.episode_return for r in records]))}
 
 
