@@ -177,9 +177,9 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         assert f"| select {task} H=5 seed=1000 | " in card
         stages_curve = root / "finetune" / f"{task}_h5_s1000_stage2" / "training_curves_stages.png"
         assert (model / "learning_curve.png").read_bytes() == stages_curve.read_bytes()  # both stages on one axis
-        # the shipped policy is stage 2's: it started from stage 1's best with its own flags and seeds
+        # the shipped policy is stage 2's: it continued stage 1's last checkpoint with its own flags and seeds
         stage2, first = (json.loads((model / name).read_text()) for name in ("finetune_config.json", "source_finetune_config.json"))
-        assert stage2["policy"]["path"] == str(root / "finetune" / f"{task}_h5_s1000" / "checkpoints" / "best" / "pretrained_model")
+        assert stage2["policy"]["path"] == str(root / "finetune" / f"{task}_h5_s1000" / "checkpoints" / "last" / "pretrained_model")
         assert (stage2["ppo"]["update_epochs"], first["ppo"]["update_epochs"]) == (3, 5)
         assert (stage2["seed"], stage2["env_seed"]) == (1001, 520_000_000)
         last = root / "finetune" / f"{task}_h5_s1000_stage2" / "checkpoints" / "last" / "pretrained_model"
@@ -198,14 +198,15 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert commands["train crowdnavpp original seed=1000"][:2] == ["lerobot-crowdnav-train-ppo", "--policy.type=crowdnavpp"]
     assert "trained from scratch by `lerobot-crowdnav-train-ppo" in report
     assert "| CrowdNav++ PPO from scratch per task | 240 env steps |" in report
-    assert "| 256 env steps, then 128 more from its best checkpoint (stage 2) |" in report
+    assert "| 256 env steps, then 128 more from its last checkpoint (stage 2) |" in report
     assert commands["finetune2 original H=1 seed=1000"][0] == "lerobot-crowdnav-finetune"
-    # stage 2 on stage 1's axes: from stage 1's best in env steps, after all of stage 1 in wall time
+    # stage 2 on stage 1's axes: from the end of stage 1 in env steps and in wall time
     cfg = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml", args=[f"--output_root={tiny_main}"])
     records = Training(cfg).finetune_records("BoundedCrowdNav-v0", 5, 1000, "PDPO")
     first, second = records["PDPO, stage 1"], records["PDPO, stage 2"]
-    best = root / "finetune" / "bounded_h5_s1000" / "checkpoints" / "best" / "pretrained_model" / "finetune_config.json"
-    start = json.loads(best.read_text())["env_steps_done"]
+    last = root / "finetune" / "bounded_h5_s1000" / "checkpoints" / "last" / "pretrained_model" / "finetune_config.json"
+    start = json.loads(last.read_text())["env_steps_done"]
+    assert start == max(r["env_steps"] for r in first)
     stage2 = (root / "finetune" / "bounded_h5_s1000_stage2" / "progress.jsonl").read_text().splitlines()
     assert [r["env_steps"] for r in second] == [start + json.loads(line)["env_steps"] for line in stage2]
     assert second[0]["time/wall_s"] == max(r.get("time/wall_s") or 0 for r in first) < second[-1]["time/wall_s"]
@@ -313,6 +314,23 @@ def test_the_checkpoint_choice_is_made_again_when_its_settings_change(tiny_main,
 
     assert scores(after["candidates"]) == scores(before["candidates"][:1]) == scores([after["chosen"]])
     assert {p: p.stat().st_mtime_ns for p in evaluated} == evaluated  # nothing evaluated again
+
+
+def test_stage2_refuses_to_resume_from_another_checkpoint_of_stage1(tiny_main, tmp_path):
+    """Stage 2 continued stage 1's ``last``: a config asking for ``best`` (and a longer stage 2, so
+    that it would resume) is refused with the way out, before anything runs; a bad value is refused
+    at parsing."""
+    shutil.copytree(tiny_main / "tiny", tmp_path / "tiny", symlinks=True)
+    stage2 = tmp_path / "tiny" / "finetune" / "bounded_h5_s1000_stage2"
+    before = sorted(p.name for p in (stage2 / "checkpoints").iterdir())
+    cfg = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml",
+                        args=[f"--output_root={tmp_path}", "--ft2_from=best", "--ft2_env_steps=1024"])
+    with pytest.raises(ValueError, match="continued stage 1's `last` checkpoint, this config asks for `best`"):
+        Training(cfg).finetune("BoundedCrowdNav-v0", 5, 1000, stage=2)
+    assert sorted(p.name for p in (stage2 / "checkpoints").iterdir()) == before
+    bad = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml", args=["--ft2_from=middle"])
+    with pytest.raises(ValueError, match="--ft2_from must be 'best' or 'last'"):
+        bad.validate()
 
 
 def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path):

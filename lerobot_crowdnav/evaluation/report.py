@@ -188,6 +188,7 @@ class Budget:
     test_episodes: int
     crowdnavpp_env_steps: int = 0
     ft2_env_steps: int = 0
+    ft2_from: str = "last"
 
 
 @dataclass(frozen=True)
@@ -268,7 +269,7 @@ def _budget_lines(b: Budget) -> list[str]:
         f"| BC pretraining (lerobot-train, batch {b.bc_batch_size}) | "
         + (f"{b.bc_epochs:g} epochs" if b.bc_epochs > 0 else f"{b.bc_steps} steps") + " | 200 epochs |",
         f"| diffusion-PPO fine-tuning per policy | {b.ft_env_steps:,} env steps"
-        + (f", then {b.ft2_env_steps:,} more from its best checkpoint (stage 2)" if b.ft2_env_steps else "")
+        + (f", then {b.ft2_env_steps:,} more from its {b.ft2_from} checkpoint (stage 2)" if b.ft2_env_steps else "")
         + " | about 12 M env steps |",
         *([f"| CrowdNav++ PPO from scratch per task | {b.crowdnavpp_env_steps:,} env steps | 10 M (CrowdNav++'s "
            "holonomic robot) |"] if b.crowdnavpp_env_steps else []),

@@ -72,14 +72,18 @@ class MainConfig:
     bc_args: list[str] = field(default_factory=list)
     # Further flags of every lerobot-crowdnav-finetune run (e.g. ["--ppo.update_epochs=3"]).
     ft_args: list[str] = field(default_factory=list)
-    # A second diffusion-PPO stage per policy (0: none): it continues from the first stage's `best`
-    # checkpoint (critic included) for ft2_env_steps env steps with the first stage's flags, then
+    # A second diffusion-PPO stage per policy (0: none): it continues from a checkpoint of the first
+    # stage (critic included, ft2_from) for ft2_env_steps env steps with the first stage's flags, then
     # ft2_args on top (later flags win), e.g. ["--ppo.freeze_encoder=false"]: the recipes train the
     # encoder once the cheap frozen-encoder stage has plateaued (docs/recipes.md). Its training
     # episodes and sampling noise come from seeds of their own (seed + 1, env seed 520,000,000).
     ft2_env_steps: int = 0
     # Flags of the second stage only, after ft_args (later flags win).
     ft2_args: list[str] = field(default_factory=list)
+    # The first stage's checkpoint the second continues from: `last` (its whole budget, one
+    # continuous fine-tuning as the paper runs it) or `best` (its best 100-episode validation
+    # reading, which on a plateau picks noise and drops the env steps after it; the plain-BC recipes').
+    ft2_from: str = "last"
     # Which checkpoint of an RL run is the policy (PDPO's last diffusion-PPO stage, CrowdNav++'s PPO
     # run). 0: the trainer's `best`, the best validation reading (the paper's; 100 episodes read +-9
     # points, too coarse to rank a plateau's checkpoints). k > 0: the k saved checkpoints with the
@@ -126,6 +130,8 @@ class MainConfig:
             raise ValueError(f"--demonstrator must be one of {list(ORCA_ROBOTS)} or null, got {self.demonstrator!r}")
         if any(h < 1 for h in self.horizons):
             raise ValueError(f"--horizons must be positive, got {self.horizons}")
+        if self.ft2_from not in ("best", "last"):
+            raise ValueError(f"--ft2_from must be 'best' or 'last', got {self.ft2_from!r}")
         if self.crowdnavpp_env_steps < 0 or self.ft2_env_steps < 0 or self.select_top < 0:
             raise ValueError("--crowdnavpp_env_steps, --ft2_env_steps and --select_top must be >= 0")
         val_size = SEED_SPLITS["val"][1] - SEED_SPLITS["val"][0]

@@ -6,7 +6,7 @@
                                        policy's own copy, <task>_h<H>_s<seed>_dagger/
         train/<task>_h<H>_s<seed>/     lerobot-train runs (checkpoints/last/pretrained_model)
         finetune/<task>_h<H>_s<seed>/  diffusion-PPO runs (checkpoints/best/pretrained_model); with
-                                       --ft2_env_steps, <...>_stage2/ continues from its best
+                                       --ft2_env_steps, <...>_stage2/ continues from it (--ft2_from)
         crowdnavpp/<task>_s<seed>/     CrowdNav++ PPO runs (checkpoints/best/pretrained_model)
         select/<task>_h<H>_s<seed>/    with --select_top, the checkpoint choice on the validation
         select/crowdnavpp_<task>_s<seed>/  seeds: each candidate's metrics.json, selected.json

@@ -178,4 +178,4 @@ class TrainedFromScratch(Source):
     def budget(self) -> Budget:
         c = self.cfg
         return Budget(c.run, c.preset, c.demos, c.bc_steps, c.bc_epochs, c.bc_batch_size, c.ft_env_steps, list(c.seeds),
-                      c.test_episodes, c.crowdnavpp_env_steps, c.ft2_env_steps)
+                      c.test_episodes, c.crowdnavpp_env_steps, c.ft2_env_steps, c.ft2_from)

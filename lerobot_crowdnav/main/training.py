@@ -187,7 +187,7 @@ class Training:
         return self.runner.run(pretrain_stage(task, h, seed), record, step_done() >= steps, run)
 
     def finetune(self, task: str, h: int, seed: int, stage: int = 1) -> Stage:
-        """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``best`` (stage 2)."""
+        """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``ft2_from`` (stage 2)."""
         from ..rl.finetune import main as finetune_main
 
         c = self.cfg
@@ -195,7 +195,7 @@ class Training:
         steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
         done = env_steps_done(out / "checkpoints" / "last") >= steps
         source = (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
-                  else self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best") / PRETRAINED_MODEL
+                  else self.stage2_start(task, h, seed)) / PRETRAINED_MODEL
         argv = ["lerobot-crowdnav-finetune", f"--policy.path={source}",
                 *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
                 f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
@@ -204,7 +204,26 @@ class Training:
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
+        if stage == 2 and not done:
+            self._check_stage2_start(out, source)
         return self.runner.run(finetune_stage(task, h, seed, stage), argv, done, lambda: finetune_main(argv[1:] + resume))
+
+    @staticmethod
+    def _check_stage2_start(out: Path, source: Path) -> None:
+        """Refuse to resume a stage 2 that continued another checkpoint of stage 1 (``best`` where
+        the config now says ``last``, or the reverse): it would finish a run of the other recipe."""
+        saved = out / "checkpoints" / "last" / PRETRAINED_MODEL / FINETUNE_CONFIG
+        if not saved.exists():
+            return
+        started = Path(json.loads(saved.read_text())["policy"]["path"]).parent.name
+        if started != source.parent.name:
+            raise ValueError(f"{out} continued stage 1's `{started}` checkpoint, this config asks for "
+                             f"`{source.parent.name}` (--ft2_from): remove {out} to run stage 2 again, "
+                             f"or pass --ft2_from={started} to finish it as it started")
+
+    def stage2_start(self, task: str, h: int, seed: int) -> Path:
+        """The checkpoint of stage 1 that stage 2 continues from (``--ft2_from``)."""
+        return self.paths.finetune_dir(task, h, seed) / "checkpoints" / self.cfg.ft2_from
 
     def rl_run(self, task: str, h: int | None, seed: int) -> tuple[Path, str]:
         """The RL run a policy's checkpoint is chosen from, and its settings file: PDPO's last
@@ -295,11 +314,11 @@ class Training:
     def finetune_records(self, task: str, h: int, seed: int, label: str) -> dict[str, list[dict]]:
         """The ``progress.jsonl`` records of each fine-tuning stage of one policy, by label, for
         ``plot_finetune_curves``. Stage 2 is drawn from where it starts in env steps (stage 1's
-        best checkpoint) and after the whole of stage 1 in wall time (the time it cost)."""
+        checkpoint it continued) and after the whole of stage 1 in wall time (the time it cost)."""
         first = read_progress(self.paths.finetune_dir(task, h, seed))
         if 2 not in self.ft_stages:
             return {label: first}
-        start = env_steps_done(self.paths.finetune_dir(task, h, seed) / "checkpoints" / "best")
+        start = env_steps_done(self.stage2_start(task, h, seed))
         spent = max(r.get("time/wall_s") or 0.0 for r in first)
         second = [{**r, "env_steps": r["env_steps"] + start,
                    "time/wall_s": None if r.get("time/wall_s") is None else r["time/wall_s"] + spent}
