@@ -215,10 +215,25 @@ def _baseline_blocks(key: str, *, bounded: bool, results: bool = True) -> dict[s
     return blocks
 
 
+def _shipped_before_blocks(key: str, recipe: str) -> dict[str, Block]:
+    """The frozen ``make main`` tables of policies shipped before (``<key>/``), named ``<key>-*``
+    (``_`` as ``-``): results of both benchmarks, the wall audit and both generalization tables,
+    their PDPO rows labelled with the ``recipe`` that made them."""
+    relabel = {f"PDPO{h} ({horizon}, fine-tuned)": f"PDPO{h} ({horizon}, {recipe}, fine-tuned)"
+               for h, horizon in ((" w/o action chunk", "H = 1"), ("", "H = 5"))}
+    name = key.replace("_", "-")
+    return {
+        name: Block("results", [Part(f"{key}/results_bounded.csv", relabel, first=("Bounded",)),
+                                Part(f"{key}/results_original.csv", relabel, first=("original",))],
+                    lead=("benchmark",)),
+        f"{name}-wall-audit": Block("wall_audit", [Part(f"{key}/wall_audit.csv", relabel)]),
+        f"{name}-generalization-bounded": Block("generalization", [Part(f"{key}/generalization_bounded.csv", relabel)],
+                                                bounded=True),
+        f"{name}-generalization-original": Block("generalization", [Part(f"{key}/generalization_original.csv", relabel)]),
+    }
+
+
 _MAIN_ROWS = {"bounded": "main/results_bounded.csv", "original": "main/results_original.csv"}
-# The PDPO rows of the policies shipped until 2026-11-26 (plain_bc/: the paper's plain-BC recipes).
-_PLAIN_BC = {"PDPO w/o action chunk (H = 1, fine-tuned)": "PDPO w/o action chunk (H = 1, plain BC, fine-tuned)",
-             "PDPO (H = 5, fine-tuned)": "PDPO (H = 5, plain BC, fine-tuned)"}
 BLOCKS: dict[str, Block] = {
     # README.md: both benchmarks in one table.
     "main": Block("results", [Part(_MAIN_ROWS["bounded"], first=("Bounded",)),
@@ -238,15 +253,8 @@ BLOCKS: dict[str, Block] = {
     "crowdnavpp-orca-baseline": Block("results", [Part("baselines/crowdnavpp_orca_baseline.csv",
                                                        _same("ORCA current-state"))],
                                       label="policy", columns=BASELINE_COLUMNS[:-1]),
-    # docs/results.md: the policies shipped before, by the paper's plain-BC recipes (frozen data)
-    "plain-bc": Block("results", [Part("plain_bc/results_bounded.csv", _PLAIN_BC, first=("Bounded",)),
-                                  Part("plain_bc/results_original.csv", _PLAIN_BC, first=("original",))],
-                      lead=("benchmark",)),
-    "plain-bc-wall-audit": Block("wall_audit", [Part("plain_bc/wall_audit.csv", _PLAIN_BC)]),
-    "plain-bc-generalization-bounded": Block("generalization", [Part("plain_bc/generalization_bounded.csv", _PLAIN_BC)],
-                                             bounded=True),
-    "plain-bc-generalization-original": Block("generalization",
-                                              [Part("plain_bc/generalization_original.csv", _PLAIN_BC)]),
+    # docs/results.md: the policies shipped until 2026-11-26, by the paper's plain-BC recipes (frozen data)
+    **_shipped_before_blocks("plain_bc", "plain BC"),
     # docs/results.md: make main's generalization tables (optional until a run with --crowds made them)
     "generalization-bounded": Block("generalization", [Part("main/generalization_bounded.csv")], optional=True,
                                     bounded=True),
