@@ -317,9 +317,9 @@ def test_the_checkpoint_choice_is_made_again_when_its_settings_change(tiny_main,
 
 
 def test_stage2_refuses_to_resume_from_another_checkpoint_of_stage1(tiny_main, tmp_path):
-    """Stage 2 continued stage 1's ``last``: a config asking for ``best`` (and a longer stage 2, so
-    that it would resume) is refused with the way out, before anything runs; a bad value is refused
-    at parsing."""
+    """Stage 2 continued stage 1's ``last``: a config asking for ``best`` is refused with the way
+    out, before anything runs, whether stage 2 would resume (a longer budget) or is done; a bad
+    value is refused at validation."""
     shutil.copytree(tiny_main / "tiny", tmp_path / "tiny", symlinks=True)
     stage2 = tmp_path / "tiny" / "finetune" / "bounded_h5_s1000_stage2"
     before = sorted(p.name for p in (stage2 / "checkpoints").iterdir())
@@ -327,6 +327,10 @@ def test_stage2_refuses_to_resume_from_another_checkpoint_of_stage1(tiny_main, t
                         args=[f"--output_root={tmp_path}", "--ft2_from=best", "--ft2_env_steps=1024"])
     with pytest.raises(ValueError, match="continued stage 1's `last` checkpoint, this config asks for `best`"):
         Training(cfg).finetune("BoundedCrowdNav-v0", 5, 1000, stage=2)
+    done = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml",
+                         args=[f"--output_root={tmp_path}", "--ft2_from=best"])
+    with pytest.raises(ValueError, match="or pass --ft2_from=last to go on with it as it started"):
+        Training(done).finetune("BoundedCrowdNav-v0", 5, 1000, stage=2)
     assert sorted(p.name for p in (stage2 / "checkpoints").iterdir()) == before
     bad = draccus.parse(MainConfig, config_path=fi.ROOT / "configs/main/tiny.yaml", args=["--ft2_from=middle"])
     with pytest.raises(ValueError, match="--ft2_from must be 'best' or 'last'"):

@@ -204,14 +204,15 @@ class Training:
         if self.device:
             argv.append(f"--device={self.device}")
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
-        if stage == 2 and not done:
+        if stage == 2:
             self._check_stage2_start(out, source)
         return self.runner.run(finetune_stage(task, h, seed, stage), argv, done, lambda: finetune_main(argv[1:] + resume))
 
     @staticmethod
     def _check_stage2_start(out: Path, source: Path) -> None:
-        """Refuse to resume a stage 2 that continued another checkpoint of stage 1 (``best`` where
-        the config now says ``last``, or the reverse): it would finish a run of the other recipe."""
+        """Refuse a stage 2 that continued another checkpoint of stage 1 (``best`` where the config
+        now says ``last``, or the reverse): resumed, it would finish a run of the other recipe; done,
+        its card and curve would name the wrong start."""
         saved = out / "checkpoints" / "last" / PRETRAINED_MODEL / FINETUNE_CONFIG
         if not saved.exists():
             return
@@ -219,7 +220,7 @@ class Training:
         if started != source.parent.name:
             raise ValueError(f"{out} continued stage 1's `{started}` checkpoint, this config asks for "
                              f"`{source.parent.name}` (--ft2_from): remove {out} to run stage 2 again, "
-                             f"or pass --ft2_from={started} to finish it as it started")
+                             f"or pass --ft2_from={started} to go on with it as it started")
 
     def stage2_start(self, task: str, h: int, seed: int) -> Path:
         """The checkpoint of stage 1 that stage 2 continues from (``--ft2_from``)."""
