@@ -152,7 +152,7 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     for section in ("## Budget", "## Bounded CrowdNav", "## original CrowdNav", "### Boundary audit", "### Wall audit (Bounded)",
                     "## Parameter counts", "## Figures", "## Stages", "## Reproduce"):
         assert section in report, section
-    methods = ["ORCA (look-ahead)", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
+    methods = ["ORCA (look-ahead)", "ORCA (current-state)", "straight", "PDPO pretrained only (H = 5, BC)", "PDPO w/o action chunk (H = 1, fine-tuned)",
                "PDPO (H = 5, fine-tuned)", "CrowdNav++ (Const. Vel.)"]
     for name in ("results_bounded.csv", "results_original.csv", "boundary_audit.csv", "wall_audit.csv"):
         rows = list(csv.DictReader(io.StringIO((root / "tables" / name).read_text())))
@@ -164,6 +164,9 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
         for fig in ("storyboard.png", "multimodality.png", "finetune_curves.png"):
             assert (root / "figures" / task / fig).stat().st_size > 5_000
         assert list((root / "eval" / task / "orca" / "videos").glob("*.gif"))
+        # both ORCA robots: the preset's (paper: look-ahead) and the recipes' demonstrator
+        for name, robot in (("orca", "look_ahead"), ("orca_current_state", "current_state")):
+            assert json.loads((root / "eval" / task / name / "metrics.json").read_text())["env"]["orca_robot"] == robot
         model = root / "hub" / "models" / "local" / f"pdpo_{task}_h5"
         assert (model / "model.safetensors").exists() and (model / "learning_curve.png").stat().st_size > 5_000
         card = (model / "README.md").read_text()
@@ -355,8 +358,9 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
     assert "## Policies" in report and "## Budget" not in report and "### Boundary audit" in report
     assert "Not shipped yet (no row): `crowdnavpp_bounded`." in report
     assert "Not shipped yet (no row): `pdpo_original_h1`." in report
-    methods = {"bounded": ["ORCA (look-ahead)", "straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"],
-               "original": ["ORCA (look-ahead)", "straight", "PDPO (H = 5, fine-tuned)", "CrowdNav++ (Const. Vel.)"]}
+    orca = ["ORCA (look-ahead)", "ORCA (current-state)", "straight"]
+    methods = {"bounded": [*orca, "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"],
+               "original": [*orca, "PDPO (H = 5, fine-tuned)", "CrowdNav++ (Const. Vel.)"]}
     for task, labels in methods.items():
         rows = list(csv.DictReader(io.StringIO((root / "tables" / f"results_{task}.csv").read_text())))
         assert [r["method"] for r in rows] == labels
@@ -460,7 +464,7 @@ def test_main_job_generalization_table_resumes_and_crowds_off_is_the_report_befo
     pipeline_main(argv)  # complete whatever the tests before left
     report = (root / "report.md").read_text()
     assert report.count("### Generalization: crowds it was not trained in") == 2
-    names = ["orca", "straight", "pdpo_bc_h5_s1000", "pdpo_ft_h1_s1000", "pdpo_ft_h5_s1000", "crowdnavpp_s1000"]
+    names = ["orca", "orca_current_state", "straight", "pdpo_bc_h5_s1000", "pdpo_ft_h1_s1000", "pdpo_ft_h5_s1000", "crowdnavpp_s1000"]
     for short, bounded in (("bounded", True), ("original", False)):
         results = {r["method"]: r for r in csv.DictReader(io.StringIO((root / "tables" / f"results_{short}.csv").read_text()))}
         rows = read_csv((root / "tables" / f"generalization_{short}.csv").read_text())

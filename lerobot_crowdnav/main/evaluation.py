@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ..evaluation.generalization import TRAINED, crowd_flags
 from ..evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
-from ..sim.config import CrowdSimConfig, split_seeds
+from ..sim.config import ORCA_ROBOTS, CrowdSimConfig, split_seeds
 from .config import MainConfig
 from .paths import SHORT, TITLE, RunPaths, eval_stage, figures_stage
 from .rows import Evaluation, MethodRow, finetuned_label
@@ -44,9 +44,15 @@ class Evaluator:
         return [f"--env.task={task}", f"--env.preset={self.cfg.preset}"]
 
     def baseline_rows(self, task: str) -> list[MethodRow]:
-        """The rows every run has: the preset's ORCA robot and the straight line."""
-        robot = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().orca_robot.replace("_", "-")
-        return [MethodRow(f"ORCA ({robot})", [Evaluation("orca")]), MethodRow("straight", [Evaluation("straight")])]
+        """The rows every run has: both ORCA robots, the preset's first (``orca``; the paper's is
+        the look-ahead robot, the recipes' demonstrator the current-state one), and the straight line."""
+        preset_robot = CrowdSimConfig(task=task, preset=self.cfg.preset).resolve().orca_robot
+        robots = sorted(ORCA_ROBOTS, key=lambda robot: robot != preset_robot)
+        return [*(MethodRow(f"ORCA ({robot.replace('_', '-')})",
+                            [Evaluation("orca")] if robot == preset_robot else
+                            [Evaluation(f"orca_{robot}", env_flags=(f"--env.orca_robot={robot}",))])
+                  for robot in robots),
+                MethodRow("straight", [Evaluation("straight")])]
 
     def evaluate(self, task: str, ev: Evaluation, crowd: str = TRAINED) -> Stage:
         """``ev`` on the test seeds, in the trained crowd (the results tables) or in ``crowd`` (the
@@ -59,7 +65,8 @@ class Evaluator:
         if self.cfg.device and ev.policy is not None:
             policy.append(f"--policy.device={self.cfg.device}")
         trained = crowd == TRAINED
-        argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), *([] if trained else crowd_flags(crowd)),
+        argv = ["lerobot-crowdnav-eval", *policy, *self._env_flags(task), *ev.env_flags,
+                *([] if trained else crowd_flags(crowd)),
                 f"--eval.n_episodes={self.cfg.test_episodes}", "--eval.split=test",
                 f"--eval.batch_size={min(256, self.cfg.test_episodes)}", f"--eval.n_videos={int(trained)}",
                 f"--output_dir={out}", "--overwrite=true"]

@@ -25,6 +25,7 @@ class Evaluation:
 
     name: str  # the directory under eval/<task>/
     policy: Path | None = None
+    env_flags: tuple[str, ...] = ()  # lerobot-crowdnav-eval's --env flags beyond the run's task and preset
     horizon: int | None = None
     seed: int | None = None
     shipped: bool = False
