@@ -50,7 +50,7 @@ class Evaluator:
         robots = sorted(ORCA_ROBOTS, key=lambda robot: robot != preset_robot)
         return [*(MethodRow(f"ORCA ({robot.replace('_', '-')})",
                             [Evaluation("orca")] if robot == preset_robot else
-                            [Evaluation(f"orca_{robot}", env_flags=(f"--env.orca_robot={robot}",))])
+                            [Evaluation(f"orca_{robot}", policy_type="orca", env_flags=(f"--env.orca_robot={robot}",))])
                   for robot in robots),
                 MethodRow("straight", [Evaluation("straight")])]
 
@@ -61,7 +61,7 @@ class Evaluator:
         from ..evaluation.eval import parse, saved_result
 
         out = self.paths.eval_dir(task, ev.name, crowd)
-        policy = [f"--policy.type={ev.name}"] if ev.policy is None else [f"--policy.path={ev.policy}"]
+        policy = [f"--policy.type={ev.policy_type or ev.name}"] if ev.policy is None else [f"--policy.path={ev.policy}"]
         if self.cfg.device and ev.policy is not None:
             policy.append(f"--policy.device={self.cfg.device}")
         trained = crowd == TRAINED

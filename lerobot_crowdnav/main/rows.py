@@ -25,12 +25,13 @@ class Evaluation:
 
     name: str  # the directory under eval/<task>/
     policy: Path | None = None
-    env_flags: tuple[str, ...] = ()  # lerobot-crowdnav-eval's --env flags beyond the run's task and preset
     horizon: int | None = None
     seed: int | None = None
     shipped: bool = False
     pretrain: Stage | None = None
     finetune: Stage | None = None
+    policy_type: str | None = None  # a built-in's --policy.type (default: name)
+    env_flags: tuple[str, ...] = ()  # lerobot-crowdnav-eval's --env flags beyond the run's task and preset
 
 
 @dataclass(frozen=True)
