@@ -239,9 +239,10 @@ def test_generalization_tables_come_from_the_report_csv_and_wait_for_it(tmp_path
     assert tables(TablesConfig(root=root)) == []
 
 
-def test_the_plain_bc_tables_keep_the_policies_shipped_before_whatever_main_run_is_imported(tmp_path):
-    """docs/data/plain_bc is frozen: importing a new `make main` run rewrites the main tables, not
-    the plain-BC ones, which show the frozen files' PDPO rows, relabelled, with their own cells."""
+def test_the_frozen_tables_keep_the_policies_shipped_before_whatever_main_run_is_imported(tmp_path):
+    """docs/data/plain_bc and look_ahead are frozen: importing a new `make main` run rewrites the
+    main tables, not theirs, which show the frozen files' PDPO rows, relabelled, with their own
+    cells; look_ahead holds the Bounded pair only (its original pair is still shipped)."""
     root = tmp_path / "repo"
     copy_repo(root)
     before = blocks((root / "docs" / "results.md").read_text())
@@ -252,10 +253,14 @@ def test_the_plain_bc_tables_keep_the_policies_shipped_before_whatever_main_run_
     tables(TablesConfig(main=run, root=root))
     got = blocks((root / "docs" / "results.md").read_text())
     assert got["main-bounded"] != before["main-bounded"]
-    assert all(got[name] == before[name] for name in got if name.startswith("plain-bc"))
+    assert all(got[name] == before[name] for name in got if name.startswith(("plain-bc", "look-ahead")))
     frozen = {r["method"]: r for r in read_csv(DATA / "plain_bc" / "results_bounded.csv")}
     sr = float(frozen["PDPO (H = 5, fine-tuned)"]["SR_mean"])
     assert f"| Bounded | PDPO (H = 5, plain BC, fine-tuned) | {sr:.1f} |" in got["plain-bc"]
     generalization = got["plain-bc-generalization-bounded"].splitlines()
     assert [line.split(" | ")[0] for line in generalization[2:]] == \
         ["| PDPO w/o action chunk (H = 1, plain BC, fine-tuned)", "| PDPO (H = 5, plain BC, fine-tuned)"]
+    look_ahead = {r["method"]: r for r in read_csv(DATA / "look_ahead" / "results_bounded.csv")}
+    sr = float(look_ahead["PDPO (H = 5, fine-tuned)"]["SR_mean"])
+    assert f"| Bounded | PDPO (H = 5, look-ahead teacher, fine-tuned) | {sr:.1f} |" in got["look-ahead"]
+    assert "| original |" not in got["look-ahead"] and "look-ahead-generalization-original" not in got
