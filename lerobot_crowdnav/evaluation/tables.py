@@ -242,10 +242,7 @@ BLOCKS: dict[str, Block] = {
     # docs/results.md
     "main-bounded": Block("results", [Part(_MAIN_ROWS["bounded"])]),
     "main-original": Block("results", [Part(_MAIN_ROWS["original"])]),
-    "wall-audit": Block("wall_audit", [
-        Part("main/wall_audit.csv", _same("ORCA (look-ahead)")),
-        Part("baselines/bounded_paper_wall_audit.csv", {"ORCA current-state": "ORCA current-state (baseline below)"}),
-        Part("main/wall_audit.csv", _same("straight", "PDPO w/o action chunk (H = 1, fine-tuned)", "PDPO (H = 5, fine-tuned)"))]),
+    "wall-audit": Block("wall_audit", [Part("main/wall_audit.csv")]),
     "boundary-audit": Block("boundary_audit", [Part("main/boundary_audit.csv")]),
     "parameters": Block("parameters", [Part("main/parameters.csv")], label="Policy"),
     "baselines-paper": Block("results", [Part("baselines/bounded_paper.csv", first=("Bounded",), blank=("OOB",)),
