@@ -9,6 +9,9 @@ from __future__ import annotations
 import ast
 import os
 import re
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -145,6 +148,27 @@ def test_a_model_card_names_no_folder_of_the_machine_that_made_it(tmp_path):
     tail = "\n".join(card_tail("org/x", None, {"command": "lerobot-crowdnav-main --output_root=/data/r"}, None, None,
                                "PPO", "everything"))
     assert "/data/r" not in tail and f"--seed={SEED_SPLITS['test'][0]}" in tail
+
+
+def test_a_stage_records_the_cpu_time_of_its_subprocesses_and_the_cores_it_could_use(tmp_path):
+    """The cards' cost table: a stage that burns CPU in a subprocess reports about that much CPU
+    time, one that sleeps about none; the cores are the process's affinity."""
+    from lerobot_crowdnav.data.hub import stage_time_table
+    from lerobot_crowdnav.main.stages import StageRunner
+
+    runner = StageRunner(tmp_path / "stage_times.json")
+    burn = [sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass"]
+    runner.run("burn", burn, False, lambda: subprocess.run(burn, check=True))
+    runner.run("sleep", ["sleep"], False, lambda: time.sleep(0.5))
+    runner.run("burn", burn, True, lambda: None)  # complete: skipped, nothing added
+    cpu, wall = runner.cpu_times(), runner.wall_times()
+    assert 0.5 <= cpu["burn"]["cpu_s"] < 0.5 + wall["burn"] and cpu["sleep"]["cpu_s"] < 0.2
+    assert cpu["burn"]["wall_s"] == pytest.approx(wall["burn"]) and cpu["burn"]["cores"] == [len(os.sched_getaffinity(0))]
+    table = stage_time_table(wall, cpu)
+    assert table[2].startswith("| burn | ") and not table[2].endswith("| n/a | n/a |") and "n/a" not in table[-1]
+    cpu["sleep"]["cores"] = [1, 2]  # resumed on both cores after one pinned to one
+    assert stage_time_table(wall, cpu)[3].endswith(" | 1-2 |")
+    assert stage_time_table(wall, {"burn": cpu["burn"]})[-1].endswith("| n/a | |")  # a stage of an older run
 
 
 def test_the_machine_line_says_when_the_process_is_pinned_to_fewer_cores(monkeypatch):

@@ -155,10 +155,8 @@ def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: st
         lines += ["", "## Reproduce", "", f"From scratch ({made}):", "", "```bash", portable(recipe["command"]), "```",
                   ""]
         if times:
-            lines += ["| stage | wall time (min) |", "|---|---|"]
-            lines += [f"| {name} | {t / 60:.1f} |" for name, t in times.items()]
-            lines += [f"| total | {sum(times.values()) / 60:.1f} |", ""]
-            lines.append(f"Machine: {recipe.get('machine', 'unknown')}.")
+            lines += [*stage_time_table(times, recipe.get("cpu_time") or {}), "",
+                      f"Machine: {recipe.get('machine', 'unknown')}."]
         for stage, by_device in (recipe.get("devices") or {}).items():  # a run moved to a lent GPU and back
             parts = "; ".join(f"{int(d['env_steps']):,} env steps in {d['wall_s'] / 60:.1f} min on "
                               f"{'the CPU' if name == 'cpu' else name.split(': ', 1)[-1]}" for name, d in by_device.items())
@@ -167,6 +165,24 @@ def card_tail(repo_id: str, metrics: dict | None, recipe: dict | None, curve: st
     return lines + ["", "## Use", "", "```bash",
                     f"lerobot-eval --policy.path=<dir>/models/{repo_id} --env.type=crowdnav --env.task={task} "
                     f"--eval.n_episodes=50 --seed={SEED_SPLITS['test'][0]}", "```"]
+
+
+def stage_time_table(wall_s: dict[str, float], cpu: dict[str, dict]) -> list[str]:
+    """The card's cost table: each stage's wall time and, where the main job measured all of it
+    (``main.stages.CPU_TIMES`` records), its CPU time and the logical cores it could use: wall
+    time says how long a stage took on this machine as it was shared, CPU time what it cost."""
+    def measured(name: str) -> dict | None:
+        record = cpu.get(name)
+        return record if record and record["wall_s"] >= 0.99 * wall_s[name] else None  # else partly unknown
+
+    lines = ["| stage | wall time (min) | CPU time (min) | cores |", "|---|---|---|---|"]
+    records = {name: measured(name) for name in wall_s}
+    for name, r in records.items():
+        cpu_cells = ("n/a", "n/a") if r is None else (
+            f"{r['cpu_s'] / 60:.1f}", "-".join(map(str, sorted({min(r["cores"]), max(r["cores"])}))))
+        lines.append(f"| {name} | {wall_s[name] / 60:.1f} | {cpu_cells[0]} | {cpu_cells[1]} |")
+    total_cpu = "n/a" if None in records.values() else f"{sum(r['cpu_s'] for r in records.values()) / 60:.1f}"
+    return lines + [f"| total | {sum(wall_s.values()) / 60:.1f} | {total_cpu} | |"]
 
 
 def portable(command: str) -> str:
@@ -193,7 +209,8 @@ def policy_card(pretrained: Path, repo_id: str, metrics: dict | None = None, rec
                 curve: str | None = None):
     """The model card of the policy in ``pretrained``, by its type (``MODEL_CARDS``); with
     ``recipe`` (``command`` that reproduces it, ``wall_time_s`` per stage) and ``curve`` (the
-    learning-curve image's file name in the repository) when the main job pushes it."""
+    learning-curve image's file name in the repository) when the main job pushes it (``cpu_time``:
+    the stages' CPU records, :func:`stage_time_table`)."""
     import json
 
     config = json.loads((pretrained / POLICY_CONFIG).read_text())

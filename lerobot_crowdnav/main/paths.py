@@ -1,7 +1,7 @@
 """The main job's run folder and stage names: where every stage writes, and what it is called.
 
     outputs/<run>/
-        main_config.json, stage_times.json
+        main_config.json, stage_times.json, stage_cpu.json (main.stages.CPU_TIMES)
         datasets/<task>/               ORCA demonstrations (LeRobotDataset); with DAgger, each
                                        policy's own copy, <task>_h<H>_s<seed>_dagger/
         train/<task>_h<H>_s<seed>/     lerobot-train runs (checkpoints/last/pretrained_model)
@@ -20,8 +20,8 @@
                                        its dataset, removed after the segment
 
 <task> is ``bounded`` or ``original``. A stage is skipped when its output here is complete, and
-its wall time is summed under its name in ``stage_times.json`` (the model cards' wall-time tables
-read it), so a run in progress resumes on these paths and names: change none of them.
+its wall time is summed under its name in ``stage_times.json``, its CPU time in ``stage_cpu.json``
+(the model cards' cost tables read both), so a run in progress resumes on these paths and names: change none of them.
 """
 
 from __future__ import annotations

@@ -380,9 +380,10 @@ class Training:
         metrics = self.paths.eval_dir(task, ev.name) / "metrics.json"
         argv = ["python", "-m", "lerobot_crowdnav.data.hub", "--kind=policy", f"--root={ev.policy}",
                 f"--repo_id={repo}", f"--push_to_hub_dir={hub}", f"--metrics={metrics}", "--overwrite=true"]
-        times = self.runner.wall_times()
+        times, cpu = self.runner.wall_times(), self.runner.cpu_times()
+        names = [n for n in [*stages, eval_stage(task, ev.name)] if n in times]
         recipe = {"command": self.command, "machine": machine_description(),
-                  "wall_time_s": {n: times[n] for n in [*stages, eval_stage(task, ev.name)] if n in times},
+                  "wall_time_s": {n: times[n] for n in names}, "cpu_time": {n: cpu[n] for n in names if n in cpu},
                   **({"checkpoint": checkpoint} if checkpoint else {})}
 
         def run() -> None:
