@@ -47,6 +47,7 @@ from pathlib import Path
 from lerobot_crowdnav.checkpoint_files import PRETRAINED_MODEL, TRAIN_PPO_CONFIG
 from lerobot_crowdnav.cli import run_cli
 from lerobot_crowdnav.measure.metrics import rate_interval
+from lerobot_crowdnav.rl.run_log import read_progress
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
@@ -147,18 +148,6 @@ def read_reference(path: Path, window: int) -> dict[str, dict[int, float]]:
 
 
 # -- the run ------------------------------------------------------------------------------------
-
-def read_progress(path: Path) -> list[dict]:
-    """The lines of a progress.jsonl, in order (a half-written last line is skipped)."""
-    rows = []
-    with open(path) as f:
-        for line in f:
-            try:
-                rows.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue
-    return rows
-
 
 def run_windows(rows: list[dict], window: int) -> list[Window]:
     """Per-window training reward and success (episode-weighted), latest validation success and
@@ -296,7 +285,7 @@ def curve(cfg: CurveConfig) -> str | None:
     progress = Path(cfg.run) / "progress.jsonl"
     if not progress.exists():
         raise FileNotFoundError(f"{progress}: no such file")
-    rows = read_progress(progress)
+    rows = read_progress(progress.parent)
     if not rows:
         raise ValueError(f"{progress}: no progress lines")
     windows = run_windows(rows, cfg.window)

@@ -50,6 +50,9 @@ def test_clip_schedule_and_denoising_discount_values():
     assert c[5] == pytest.approx(0.001 + 0.009 * (math.exp(3 * 5 / 9) - 1) / (math.exp(3) - 1))
     assert np.all(np.diff(c) > 0)
     assert clip_coefficients(1, 0.001, 0.01, 3.0).tolist() == [0.01]
+    # rate 0 is the exponential's limit, a straight line (0/0 in the formula otherwise)
+    np.testing.assert_allclose(clip_coefficients(4, 0.001, 0.01, 0.0), [0.001, 0.004, 0.007, 0.01])
+    np.testing.assert_allclose(clip_coefficients(4, 0.001, 0.01, 1e-9), [0.001, 0.004, 0.007, 0.01], rtol=1e-5)
     d = denoising_discounts(10, 0.99)
     assert d[-1] == 1.0 and d[0] == pytest.approx(0.99**9) and d[3] == pytest.approx(0.99**6)
 
@@ -310,6 +313,19 @@ def test_executed_log_probabilities_read_the_first_action_only(pretrained):
         DiffusionPPOConfig(logprob_actions="first").validate()
 
 
+@pytest.mark.parametrize("bad, message", [(dict(clip_ploss_coef_rate=1e4), "overflows"),
+                                          (dict(batch_size=1), "batch_size must be >= 2"),
+                                          (dict(reward_clip=0.0), "reward_clip must be > 0")])
+def test_ppo_settings_that_would_train_on_nan_or_constant_rewards_are_refused(bad, message):
+    """Each of these ran before and silently trained on NaN (an overflowing clip schedule, the std of
+    a one-sample minibatch) or on constant rewards (a clip of 0); rate 0 and batch 1 without
+    per-minibatch normalization are fine."""
+    with pytest.raises(ValueError, match=message):
+        DiffusionPPOConfig(**bad).validate()
+    DiffusionPPOConfig(clip_ploss_coef_rate=0.0).validate()
+    DiffusionPPOConfig(batch_size=1, norm_adv="rollout").validate()
+
+
 def test_frozen_encoder_scores_from_stored_latents_and_stays_put(pretrained, tmp_path):
     """--ppo.freeze_encoder: the rollout stores each state's latent, the update scores from it
     exactly as from the state, the encoder does not move, and the fine-tuned nets do."""
@@ -475,3 +491,7 @@ def test_checkpoints_from_before_the_actor_critic_split_still_load(tmp_path):
     save_file(legacy, str(tmp_path / "model.safetensors"))
     with pytest.raises(RuntimeError, match="Missing key"):
         PDPOPolicy.from_pretrained(tmp_path)
+    # a fine-tuned policy saved without its critic (lerobot's own push): one clear error, not a KeyError
+    save_file({k: v for k, v in legacy.items() if not k.startswith("value.")}, str(tmp_path / "model.safetensors"))
+    with pytest.raises(FileNotFoundError, match="without its critic"):
+        _saved_critic(tmp_path)

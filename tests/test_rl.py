@@ -216,6 +216,16 @@ def test_a_resumed_run_log_keeps_the_history_up_to_the_checkpoint_and_drops_what
     resumed.writer.close()
     assert tensorboard_scalars(tmp_path, "x") == [(0, 0.0), (32, 1.0), (64, 2.0), (96, 30.0), (128, 40.0)]
     assert [r["x"] for r in read_progress(tmp_path)] == [0.0, 1.0, 2.0, 30.0, 40.0]
+    # killed while appending a record: the cut line is left out, and the next resume rewrites the file whole
+    progress = tmp_path / "progress.jsonl"
+    progress.write_text(progress.read_text() + '{"iteration": 5, "env_st')
+    assert [r["x"] for r in read_progress(tmp_path)] == [0.0, 1.0, 2.0, 30.0, 40.0]
+    again = RunLog(tmp_path, True, 128, True, no_wandb, {})
+    again.writer.close()
+    assert progress.read_text().endswith('"x": 40.0}\n') and not list(tmp_path.glob(".*"))
+    progress.write_text('{"iteration": 0\n' + progress.read_text())  # damaged before its end: an error
+    with pytest.raises(ValueError, match="progress.jsonl:1 is not a JSON record"):
+        read_progress(tmp_path)
 
 
 def test_a_registered_family_trains_checkpoints_and_resumes_through_the_ppo_cli(tmp_path):

@@ -74,6 +74,11 @@ class PPOConfig:
             raise ValueError(f"--ppo.adam_eps must be > 0, got {self.adam_eps}")
         if self.norm_adv not in ("minibatch", "rollout"):
             raise ValueError(f"--ppo.norm_adv must be minibatch or rollout, got {self.norm_adv!r}")
+        if self.norm_adv == "minibatch" and self.batch_size < 2:
+            raise ValueError("--ppo.norm_adv=minibatch normalizes each minibatch's advantages by their std: "
+                             f"--ppo.batch_size must be >= 2, got {self.batch_size}")
+        if not self.reward_clip > 0:
+            raise ValueError(f"--ppo.reward_clip must be > 0, got {self.reward_clip}")
 
     def clip_per_part(self) -> np.ndarray:
         """PPO clip of each scored part of a decision, ``(n,)``: one part here."""
@@ -140,6 +145,13 @@ class DiffusionPPOConfig(PPOConfig):
             raise ValueError(f"--ppo.gamma_denoising must be in (0, 1], got {self.gamma_denoising}")
         if not 0 < self.clip_ploss_coef_base <= self.clip_ploss_coef:
             raise ValueError("need 0 < --ppo.clip_ploss_coef_base <= --ppo.clip_ploss_coef")
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):
+                finite = bool(np.isfinite(self.clip_per_part()).all())
+        except OverflowError:
+            finite = False
+        if not finite:
+            raise ValueError(f"--ppo.clip_ploss_coef_rate={self.clip_ploss_coef_rate} overflows the clip schedule")
 
     def clip_per_part(self) -> np.ndarray:
         return clip_coefficients(self.ft_denoising_steps, self.clip_ploss_coef_base, self.clip_ploss_coef,

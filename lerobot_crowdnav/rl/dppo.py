@@ -189,7 +189,11 @@ def _saved_critic(path: Path) -> dict[str, Tensor]:
     if (path / CRITIC).exists():
         return load_file(str(path / CRITIC))
     legacy = load_file(str(path / WEIGHTS))  # written before the actor/critic split
-    return {k.removeprefix("value."): v for k, v in legacy.items() if k.startswith("value.")}
+    critic = {k.removeprefix("value."): v for k, v in legacy.items() if k.startswith("value.")}
+    if not critic:
+        raise FileNotFoundError(f"{path} is a fine-tuned PDPO policy without its critic ({CRITIC}): continue "
+                                "fine-tuning from the checkpoint the fine-tuning wrote, critic included")
+    return critic
 
 
 def check_compatible(policy: PDPOPolicy, sim_cfg: CrowdSimConfig) -> None:

@@ -68,10 +68,13 @@ def gae(rewards: np.ndarray, values: np.ndarray, next_values: np.ndarray, termin
 
 def clip_coefficients(ft_steps: int, base: float, clip: float, rate: float) -> np.ndarray:
     """PPO clip coefficient of each fine-tuned denoising step, ``(K',)``: from ``base`` at the
-    noisiest (i = 0) to ``clip`` at the final step, growing like ``exp(rate * i / (K'-1))``."""
+    noisiest (i = 0) to ``clip`` at the final step, growing like ``exp(rate * i / (K'-1))``
+    (linearly at rate 0, the exponential's limit)."""
     if ft_steps == 1:
         return np.array([clip])
     i = np.arange(ft_steps) / (ft_steps - 1)
+    if rate == 0:
+        return base + (clip - base) * i
     return base + (clip - base) * (np.exp(rate * i) - 1) / (math.exp(rate) - 1)
 
 

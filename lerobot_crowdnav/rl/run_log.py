@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from .. import fault
 from ..measure.episodes import json_safe
 
 
@@ -23,9 +24,8 @@ class RunLog:
         self.out.mkdir(parents=True, exist_ok=True)
         self.progress = self.out / "progress.jsonl"
         if resume and self.progress.exists():  # keep the history up to the checkpoint resumed
-            self.records = [r for r in map(json.loads, self.progress.read_text().splitlines())
-                            if r["env_steps"] <= env_steps]
-        self.progress.write_text("".join(json.dumps(r) + "\n" for r in self.records))
+            self.records = [r for r in read_progress(self.out) if r["env_steps"] <= env_steps]
+        fault.write_text(self.progress, "".join(json.dumps(r) + "\n" for r in self.records))
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(self.out / "tensorboard", purge_step=env_steps + 1 if resume else 0)
@@ -61,8 +61,19 @@ class RunLog:
 
 
 def read_progress(run: Path) -> list[dict]:
-    """The records of ``<run>/progress.jsonl`` (a fine-tuning or PPO run's output directory)."""
-    return [json.loads(line) for line in (Path(run) / "progress.jsonl").read_text().splitlines()]
+    """The records of ``<run>/progress.jsonl`` (a fine-tuning or PPO run's output directory). A
+    last line cut short (the process killed while appending it) is left out; a bad line before it
+    is an error naming the file and line."""
+    path = Path(run) / "progress.jsonl"
+    lines = path.read_text().splitlines()
+    records = []
+    for number, line in enumerate(lines, start=1):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            if number < len(lines):
+                raise ValueError(f"{path}:{number} is not a JSON record ({e}): the run's log is damaged") from None
+    return records
 
 
 def env_steps_by_device(records: list[dict]) -> dict[str, dict[str, float]]:
