@@ -212,3 +212,25 @@ def test_a_stage_killed_without_warning_keeps_its_time_so_far_and_a_rerun_adds_t
     cpu = StageRunner(times).cpu_times()
     assert 0.3 <= cpu["train"]["wall_s"] < total - 0.4
     assert stage_time_table({"train": total}, cpu)[2].endswith("| n/a | n/a |")
+
+
+def test_a_bc_run_killed_while_lerobot_moved_its_last_link_resumes_from_its_newest_checkpoint(tmp_path):
+    """lerobot-train moves checkpoints/last by unlink, then symlink: killed in between, the run has
+    numbered checkpoints and no `last`, and the main job would have started BC again from zero.
+    The link is restored to the newest complete checkpoint (not to one cut short)."""
+    from lerobot_crowdnav.checkpoint_files import PRETRAINED_MODEL, TRAINING_STATE, TRAINING_STEP
+    from lerobot_crowdnav.main.training import restore_last_checkpoint
+
+    checkpoints = tmp_path / "checkpoints"
+    for step, complete in (("005000", True), ("010000", True), ("015000", False)):
+        (checkpoints / step / PRETRAINED_MODEL).mkdir(parents=True)
+        if complete:
+            (checkpoints / step / TRAINING_STATE).mkdir()
+            (checkpoints / step / TRAINING_STATE / TRAINING_STEP).write_text('{"step": %d}' % int(step))
+    restore_last_checkpoint(checkpoints)
+    assert (checkpoints / "last").resolve() == (checkpoints / "010000").resolve()
+    (checkpoints / "last").unlink()
+    (checkpoints / "last").symlink_to("020000")  # dangling
+    restore_last_checkpoint(checkpoints)
+    assert (checkpoints / "last").resolve() == (checkpoints / "010000").resolve()
+    restore_last_checkpoint(tmp_path / "never_started" / "checkpoints")  # nothing to restore: no error

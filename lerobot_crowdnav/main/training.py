@@ -31,6 +31,21 @@ from .rows import Evaluation
 from .stages import StageRunner
 
 
+def restore_last_checkpoint(checkpoints: Path) -> None:
+    """Point lerobot-train's ``checkpoints/last`` link at its newest complete checkpoint when the
+    link is missing or dangling: lerobot moves it by unlink, then symlink, and a kill between the
+    two would otherwise make the run look never checkpointed (and be started again from zero)."""
+    last = checkpoints / "last"
+    if last.exists() or not checkpoints.is_dir():
+        return
+    complete = [p for p in checkpoints.iterdir() if p.name.isdigit() and (p / PRETRAINED_MODEL).is_dir()
+                and (p / TRAINING_STATE / TRAINING_STEP).exists()]
+    if complete:
+        if last.is_symlink():
+            last.unlink()
+        last.symlink_to(max(complete, key=lambda p: int(p.name)).name)
+
+
 def env_steps_done(checkpoint: Path, settings: str = FINETUNE_CONFIG) -> int:
     """A PPO checkpoint's env steps, from its run settings file (0 when it has none yet)."""
     path = checkpoint / PRETRAINED_MODEL / settings
@@ -125,6 +140,7 @@ class Training:
         out = self.paths.train_dir(task, h, seed)
         steps = self.bc_steps(task)
         last = out / "checkpoints" / "last"
+        restore_last_checkpoint(last.parent)
         step_file = last / TRAINING_STATE / TRAINING_STEP
 
         def step_done() -> int:
