@@ -53,8 +53,12 @@ class Pipeline:
         self.paths = RunPaths(cfg.root, cfg.hub_org)
         self.runner = StageRunner(self.paths.stage_times)
         self.evaluator = Evaluator(cfg, self.paths, self.runner)
-        self.source: Source = (ShippedModels(cfg, self.paths) if cfg.models is not None
-                                else TrainedFromScratch(cfg, Training(cfg, self.paths, self.runner, command)))
+        if cfg.models is None:
+            training = Training(cfg, self.paths, self.runner, command)
+            training.check_finetune_commands()
+            self.source: Source = TrainedFromScratch(cfg, training)
+        else:
+            self.source = ShippedModels(cfg, self.paths)
 
     def run(self) -> Path:
         start = time.perf_counter()

@@ -318,6 +318,17 @@ def test_the_checkpoint_choice_is_made_again_when_its_settings_change(tiny_main,
 
     assert scores(after["candidates"]) == scores(before["candidates"][:1]) == scores([after["chosen"]])
     assert {p: p.stat().st_mtime_ns for p in evaluated} == evaluated  # nothing evaluated again
+    # The run removed and redone to the same budget: other weights at the same paths (here: other
+    # config bytes), so the choice is made again and the changed candidate evaluated again.
+    chosen = Path(after["chosen"]["policy"])
+    last = tmp_path / "tiny" / "finetune" / "bounded_h5_s1000_stage2" / "checkpoints" / "last" / "pretrained_model"
+    for model in {chosen.resolve(), last.resolve()}:
+        with open(model / "config.json", "a") as f:
+            f.write(" ")
+    stage, again = select("--select_top=1")
+    assert stage.wall_time_s is not None and again["last_digest"] != after["last_digest"]
+    metrics = tmp_path / "tiny" / "select" / "bounded_h5_s1000" / f"{after['chosen']['env_steps']:09d}" / "metrics.json"
+    assert metrics.stat().st_mtime_ns != evaluated[metrics]
 
 
 def test_stage2_refuses_to_resume_from_another_checkpoint_of_stage1(tiny_main, tmp_path):
@@ -354,7 +365,7 @@ def test_main_job_evaluates_shipped_models_without_training(tiny_main, tmp_path)
                    "--figure_steps=[0,2]", "--figure_samples=4", "--crowds=[orca]"])
     root = out / "shipped"
     assert sorted(p.name for p in root.iterdir()) == ["commands.json", "eval", "figures", "main_config.json", "report.md",
-                                                       "stage_times.json", "tables"]  # nothing trained, nothing pushed
+                                                       "stage_cpu.json", "stage_times.json", "tables"]  # nothing trained, nothing pushed
     report = (root / "report.md").read_text()
     assert "## Policies" in report and "## Budget" not in report and "### Boundary audit" in report
     assert "Not shipped yet (no row): `crowdnavpp_bounded`." in report
@@ -436,6 +447,21 @@ def test_main_and_recipe_configs_parse_and_their_flags_do_too(path):
     assert all(f.startswith("--policy.") for f in cfg.bc_args), "bc_args: only policy flags are recipe settings"
     draccus.parse(PDPOConfig, args=[f"--{f.removeprefix('--policy.')}" for f in cfg.bc_args])
     draccus.parse(FinetuneConfig, args=[*cfg.ft_args, *cfg.ft2_args]).ppo.validate()
+    Training(cfg).check_finetune_commands()  # each fine-tuning stage's whole command, as the job checks it first
+
+
+def test_a_fine_tuning_setting_the_trainer_refuses_fails_before_anything_runs(tmp_path):
+    """--ft_num_envs=4 gives 256 env steps an iteration, fewer than the 500 of a PPO batch: the
+    fine-tuning refuses it, and the main job says so at once, not after collection and BC."""
+    import draccus
+
+    from lerobot_crowdnav.pipeline import Pipeline
+
+    cfg = draccus.parse(MainConfig, config_path=str(CONFIGS / "recipes" / "bounded_pdpo_h5.yaml"),
+                        args=[f"--output_root={tmp_path}", "--ft_num_envs=4"])
+    with pytest.raises(ValueError, match=r"finetune bounded H=5 seed=1000: an iteration has 256 env steps"):
+        Pipeline(cfg)
+    assert not list(tmp_path.iterdir())  # nothing written
 
 
 # -- the generalization table (--crowds) ---------------------------------------------------------

@@ -5,10 +5,10 @@ identical tables), the storyboard and multimodality figures of a PDPO policy, an
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable
 from pathlib import Path
 
+from ..checkpoint_files import POLICY_DIGEST, policy_digest
 from ..evaluation.generalization import TRAINED, crowd_flags
 from ..evaluation.report import Budget, Evaluated, Method, ReportInputs, Stage, TaskResults, write_report
 from ..sim.config import ORCA_ROBOTS, CrowdSimConfig, split_seeds
@@ -19,17 +19,6 @@ from .stages import StageRunner
 
 # A learning curve in the report: (caption, image under the run folder).
 Curve = tuple[str, Path]
-# Next to a learned policy's evaluation: the digest of the files it was made from.
-POLICY_DIGEST = "policy.sha256"
-
-
-def policy_digest(model_dir: Path) -> str:
-    """SHA-256 over a model directory's weights and configs (``*.safetensors``, ``*.json``)."""
-    h = hashlib.sha256()
-    for path in sorted(Path(model_dir).iterdir()):
-        if path.is_file() and path.suffix in (".safetensors", ".json"):
-            h.update(path.name.encode() + b"\0" + path.read_bytes())
-    return h.hexdigest()
 
 
 class Evaluator:
@@ -122,9 +111,12 @@ class Evaluator:
                                title=f"{TITLE[task]}, test episode {episode_seed}: {self.cfg.figure_samples} chunks "
                                      "sampled per observation")
             draw_curves()
+            digest.write_text(policy_digest(policy))
 
+        # Drawn again when another policy is shown (a longer run, another checkpoint chosen).
+        digest = out / POLICY_DIGEST
         done = (all(p.exists() for p in [*paths.values(), *(image for _, image in curves)]) and not self.cfg.rerun_eval
-                and not redraw)
+                and not redraw and digest.exists() and digest.read_text() == policy_digest(policy))
         return self.runner.run(figures_stage(task), argv, done, run), curves
 
     def task_results(self, task: str, methods: list[Method], figures: Stage | None, curves: list[Curve],

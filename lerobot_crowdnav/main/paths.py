@@ -19,6 +19,10 @@
         .hf_datasets_cache/            while a lerobot-train segment runs: 🤗 datasets' Arrow copy of
                                        its dataset, removed after the segment
 
+A learned policy's metrics.json (in eval/ and select/) and figures/<task>/ have policy.sha256
+beside them, the digest of the policy they were made from: another policy at the same path (a
+longer run, another checkpoint chosen, a run redone) makes them again.
+
 <task> is ``bounded`` or ``original``. A stage is skipped when its output here is complete, and
 its wall time is summed under its name in ``stage_times.json``, its CPU time in ``stage_cpu.json``
 (the model cards' cost tables read both), so a run in progress resumes on these paths and names: change none of them.

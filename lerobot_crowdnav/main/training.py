@@ -18,8 +18,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .. import fault
-from ..checkpoint_files import (BEST_INFO, FINETUNE_CONFIG, PRETRAINED_MODEL, TRAIN_CONFIG, TRAIN_PPO_CONFIG,
-                                TRAINING_STATE, TRAINING_STEP)
+from ..checkpoint_files import (BEST_INFO, FINETUNE_CONFIG, POLICY_DIGEST, PRETRAINED_MODEL, TRAIN_CONFIG,
+                                TRAIN_PPO_CONFIG, TRAINING_STATE, TRAINING_STEP, policy_digest)
 from ..cli import machine_description
 from ..evaluation.report import Stage
 from ..rl.run_log import env_steps_by_device, read_progress
@@ -206,23 +206,51 @@ class Training:
         """Diffusion PPO from the BC checkpoint (stage 1) or from stage 1's ``ft2_from`` (stage 2)."""
         from ..rl.finetune import main as finetune_main
 
-        c = self.cfg
         out = self.paths.finetune_dir(task, h, seed, stage)
-        steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
+        steps = self.cfg.ft_env_steps if stage == 1 else self.cfg.ft2_env_steps
         done = env_steps_done(out / "checkpoints" / "last") >= steps
-        source = (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
-                  else self.stage2_start(task, h, seed)) / PRETRAINED_MODEL
-        argv = ["lerobot-crowdnav-finetune", f"--policy.path={source}",
-                *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
-                f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
-                f"--save_freq={max(c.ft_val_freq, steps // 4)}", f"--output_dir={out}", *c.ft_args]
-        argv += [f"--seed={seed}"] if stage == 1 else [f"--seed={seed + 1}", f"--env_seed={PPO_STAGE2_ENV_SEED}", *c.ft2_args]
-        if self.device:
-            argv.append(f"--device={self.device}")
+        argv = self.finetune_argv(task, h, seed, stage)
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         if stage == 2:
-            self._check_stage2_start(out, source)
+            self._check_stage2_start(out, self.finetune_source(task, h, seed, stage))
         return self.runner.run(finetune_stage(task, h, seed, stage), argv, done, lambda: finetune_main(argv[1:] + resume))
+
+    def finetune_source(self, task: str, h: int, seed: int, stage: int) -> Path:
+        """The checkpoint a fine-tuning stage starts from: BC's ``last`` (stage 1), or stage 1's
+        ``ft2_from`` (stage 2)."""
+        return (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
+                else self.stage2_start(task, h, seed)) / PRETRAINED_MODEL
+
+    def finetune_argv(self, task: str, h: int, seed: int, stage: int) -> list[str]:
+        """The ``lerobot-crowdnav-finetune`` command of a fine-tuning stage."""
+        c = self.cfg
+        steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
+        argv = ["lerobot-crowdnav-finetune", f"--policy.path={self.finetune_source(task, h, seed, stage)}",
+                *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
+                f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
+                f"--save_freq={max(c.ft_val_freq, steps // 4)}", f"--output_dir={self.paths.finetune_dir(task, h, seed, stage)}",
+                *c.ft_args]
+        argv += [f"--seed={seed}"] if stage == 1 else [f"--seed={seed + 1}", f"--env_seed={PPO_STAGE2_ENV_SEED}", *c.ft2_args]
+        return argv + ([f"--device={self.device}"] if self.device else [])
+
+    def check_finetune_commands(self) -> None:
+        """Parse and validate every fine-tuning stage's command before anything runs: a setting the
+        fine-tuning refuses (``--ft_args``, the ``ft_*`` fields) fails now, not after the
+        collection and hours of BC."""
+        import draccus
+        from draccus.utils import DecodingError
+
+        from ..rl.finetune import FinetuneConfig
+
+        for task in self.cfg.tasks:
+            for h in self.cfg.horizons:
+                for seed in self.cfg.seeds:
+                    for stage in self.ft_stages:
+                        argv = self.finetune_argv(task, h, seed, stage)
+                        try:
+                            draccus.parse(FinetuneConfig, args=argv[1:]).validate()
+                        except (ValueError, DecodingError) as e:
+                            raise ValueError(f"{finetune_stage(task, h, seed, stage)}: {e}") from None
 
     @staticmethod
     def _check_stage2_start(out: Path, source: Path) -> None:
@@ -260,8 +288,10 @@ class Training:
         c = self.cfg
         out = self.paths.select_dir(task, h, seed)
         run_dir, settings = self.rl_run(task, h, seed)
-        made_from = {"top": c.select_top, "episodes": c.select_episodes,
-                     "env_steps_done": env_steps_done(run_dir / "checkpoints" / "last", settings)}
+        last = run_dir / "checkpoints" / "last"
+        made_from = {"top": c.select_top, "episodes": c.select_episodes, "env_steps_done": env_steps_done(last, settings),
+                     # the run itself: one removed and run again to the same budget is another run
+                     "last_digest": policy_digest(last / PRETRAINED_MODEL) if last.exists() else None}
         selected = self.paths.selected_file(task, h, seed)
         done = selected.exists() and all(json.loads(selected.read_text()).get(k) == v for k, v in made_from.items())
         flags = [*self._env_flags(task), f"--eval.n_episodes={c.select_episodes}", "--eval.split=val",
@@ -272,9 +302,11 @@ class Training:
         def run() -> None:
             results = []
             for steps, reading, path in select_candidates(run_dir, c.select_top):
-                metrics = out / f"{steps:09d}" / "metrics.json"
-                if not metrics.exists() or json.loads(metrics.read_text())["n_episodes"] != c.select_episodes:
+                metrics, digest = out / f"{steps:09d}" / "metrics.json", out / f"{steps:09d}" / POLICY_DIGEST
+                if (not metrics.exists() or json.loads(metrics.read_text())["n_episodes"] != c.select_episodes
+                        or not digest.exists() or digest.read_text() != policy_digest(path)):
                     eval_main([f"--policy.path={path}", *flags, f"--output_dir={metrics.parent}"])
+                    digest.write_text(policy_digest(path))
                 results.append({"env_steps": steps, "reading": reading, "policy": str(path),
                                 "val_success_rate": json.loads(metrics.read_text())["sr"]})
             chosen = max(results, key=lambda r: (r["val_success_rate"], -r["env_steps"]))
