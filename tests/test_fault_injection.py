@@ -234,3 +234,43 @@ def test_a_bc_run_killed_while_lerobot_moved_its_last_link_resumes_from_its_newe
     restore_last_checkpoint(checkpoints)
     assert (checkpoints / "last").resolve() == (checkpoints / "010000").resolve()
     restore_last_checkpoint(tmp_path / "never_started" / "checkpoints")  # nothing to restore: no error
+
+
+def test_a_best_found_after_the_last_checkpoint_waits_for_the_next_one(tmp_path):
+    """best/ belongs to the trajectory a run resumes from: a new best is pending until the next
+    checkpoint is in place; resumed before it, a best the interrupted run found later is dropped,
+    one found up to the checkpoint (killed between the checkpoint and its promotion) is kept, and an
+    old best left at the pending name by a kill right after the exchange never comes back."""
+    import json
+    from types import SimpleNamespace
+
+    from lerobot_crowdnav.rl.checkpoints import Checkpoints
+
+    acc = SimpleNamespace(is_main_process=True, process_index=0, wait_for_everyone=lambda: None)
+    ckpts = Checkpoints(tmp_path, acc, 9)
+
+    def best_at(env_steps: int) -> None:
+        ckpts.save_best(lambda p: p.mkdir(parents=True), {"env_steps": env_steps})
+
+    def checkpoint(env_steps: int) -> None:
+        ckpts.save(env_steps, lambda p: p.mkdir(parents=True), {}, lambda state, r: None)
+
+    def best() -> int | None:
+        info = tmp_path / "best" / "best.json"
+        return json.loads(info.read_text())["env_steps"] if info.exists() else None
+
+    best_at(0)
+    assert best() is None and ckpts.pending_best.exists()
+    checkpoint(200)
+    assert best() == 0 and not ckpts.pending_best.exists()
+    best_at(300)  # then killed before the checkpoint at 400
+    Checkpoints(tmp_path, acc, 9).settle_best(200)
+    assert best() == 0 and not ckpts.pending_best.exists()
+    best_at(300)
+    Checkpoints(tmp_path, acc, 9).settle_best(300)  # its checkpoint was in place, its promotion not
+    assert best() == 300
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "best.json").write_text(json.dumps({"env_steps": 0}))
+    (tmp_path / "old").rename(ckpts.pending_best)  # the old best, at the pending name after the exchange
+    Checkpoints(tmp_path, acc, 9).settle_best(400)
+    assert best() == 300 and not ckpts.pending_best.exists()

@@ -8,7 +8,10 @@
 
 Every checkpoint is written under a hidden staging name and swapped in with one atomic rename
 when complete (``fault.replace_dir``), so an interrupted save never leaves a half checkpoint
-behind ``last`` or ``best``, nor loses the previous ``best``.
+behind ``last`` or ``best``, nor loses the previous ``best``. A new best waits in
+``.best.pending`` until the next checkpoint is in place: ``best`` then always belongs to the
+trajectory the run resumes from (a run killed after a validation but before its next checkpoint
+replays those steps, and on another device may not find that best again).
 """
 
 from __future__ import annotations
@@ -89,16 +92,42 @@ class Checkpoints:
             link.symlink_to(name)
             link.replace(self.last)
             fault.point("finetune.last_linked")
+            self._promote_best()
         self.acc.wait_for_everyone()
         return final
 
+    @property
+    def pending_best(self) -> Path:
+        return self.root / ".best.pending"
+
     def save_best(self, save_policy: Callable[[Path], None], info: dict) -> None:
-        """Main process only: ``best/pretrained_model`` and ``best/best.json`` (``info``)."""
+        """Main process only: ``pretrained_model`` and ``best.json`` (``info``, with ``env_steps``)
+        of a new best, which becomes ``best/`` at the next checkpoint."""
         staging = self.root / ".best.tmp"
         shutil.rmtree(staging, ignore_errors=True)
         save_policy(staging / PRETRAINED_MODEL)
         (staging / BEST_INFO).write_text(json.dumps(info, indent=2))
-        fault.replace_dir(staging, self.root / "best")
+        fault.replace_dir(staging, self.pending_best)
+
+    def settle_best(self, env_steps: int) -> None:
+        """Main process, at the start of a run resumed at ``env_steps`` (0: from scratch): a pending
+        best found up to there belongs to this trajectory (killed between the checkpoint and its
+        promotion) and becomes ``best/``; one found later, by the interrupted run, is dropped."""
+        self._promote_best(up_to=env_steps)
+
+    def _promote_best(self, up_to: float = float("inf")) -> None:
+        """``.best.pending`` becomes ``best/`` if it is newer than ``best/`` and found by ``up_to``
+        env steps; otherwise it is dropped (also the old best that a kill right after the atomic
+        exchange leaves at the pending name)."""
+        if not self.pending_best.exists():
+            return
+        found = json.loads((self.pending_best / BEST_INFO).read_text())["env_steps"]
+        best = self.root / "best" / BEST_INFO
+        current = json.loads(best.read_text())["env_steps"] if best.exists() else -1
+        if current < found <= up_to:
+            fault.replace_dir(self.pending_best, self.root / "best")
+        else:
+            shutil.rmtree(self.pending_best)
 
     def load_shared(self) -> dict:
         return torch.load(self.last / TRAINING_STATE / "optimizers.pt", map_location=self.acc.device, weights_only=True)

@@ -213,6 +213,8 @@ def run_ppo(cfg: PPORunConfig, build_agent: Callable[[Path | None, CrowdSimConfi
         saved_rng = json.loads((state / f"rng_rank{rank}.json").read_text())
         rng.bit_generator.state = saved_rng["numpy"]
         collector.load_state_dict(saved_rng)
+    if main:
+        ckpts.settle_best(progress["env_steps"])
     log = RunLog(out, main, progress["env_steps"], resumed, cfg.wandb, settings)
 
     def validate_and_keep_best() -> dict:
