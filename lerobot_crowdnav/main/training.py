@@ -8,6 +8,7 @@ interrupted (collection, lerobot-train and fine-tuning from their last checkpoin
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import math
 import os
@@ -207,8 +208,7 @@ class Training:
         from ..rl.finetune import main as finetune_main
 
         out = self.paths.finetune_dir(task, h, seed, stage)
-        steps = self.cfg.ft_env_steps if stage == 1 else self.cfg.ft2_env_steps
-        done = env_steps_done(out / "checkpoints" / "last") >= steps
+        done = env_steps_done(out / "checkpoints" / "last") >= self.ft_budget(stage)
         argv = self.finetune_argv(task, h, seed, stage)
         resume = ["--resume=true"] if out.exists() else []  # also a run killed before its first checkpoint
         if stage == 2:
@@ -221,10 +221,14 @@ class Training:
         return (self.paths.train_dir(task, h, seed) / "checkpoints" / "last" if stage == 1
                 else self.stage2_start(task, h, seed)) / PRETRAINED_MODEL
 
+    def ft_budget(self, stage: int) -> int:
+        """A fine-tuning stage's env steps."""
+        return self.cfg.ft_env_steps if stage == 1 else self.cfg.ft2_env_steps
+
     def finetune_argv(self, task: str, h: int, seed: int, stage: int) -> list[str]:
         """The ``lerobot-crowdnav-finetune`` command of a fine-tuning stage."""
         c = self.cfg
-        steps = c.ft_env_steps if stage == 1 else c.ft2_env_steps
+        steps = self.ft_budget(stage)
         argv = ["lerobot-crowdnav-finetune", f"--policy.path={self.finetune_source(task, h, seed, stage)}",
                 *self._env_flags(task), f"--num_envs={c.ft_num_envs}", f"--env_steps={steps}",
                 f"--ppo.n_steps={c.ft_n_steps}", f"--ppo.batch_size={c.ft_batch_size}", f"--val.n_episodes={c.ft_val_episodes}", f"--val.freq={c.ft_val_freq}",
@@ -242,15 +246,11 @@ class Training:
 
         from ..rl.finetune import FinetuneConfig
 
-        for task in self.cfg.tasks:
-            for h in self.cfg.horizons:
-                for seed in self.cfg.seeds:
-                    for stage in self.ft_stages:
-                        argv = self.finetune_argv(task, h, seed, stage)
-                        try:
-                            draccus.parse(FinetuneConfig, args=argv[1:]).validate()
-                        except (ValueError, DecodingError) as e:
-                            raise ValueError(f"{finetune_stage(task, h, seed, stage)}: {e}") from None
+        for task, h, seed, stage in itertools.product(self.cfg.tasks, self.cfg.horizons, self.cfg.seeds, self.ft_stages):
+            try:
+                draccus.parse(FinetuneConfig, args=self.finetune_argv(task, h, seed, stage)[1:]).validate()
+            except (ValueError, DecodingError) as e:
+                raise ValueError(f"{finetune_stage(task, h, seed, stage)}: {e}") from None
 
     @staticmethod
     def _check_stage2_start(out: Path, source: Path) -> None:
