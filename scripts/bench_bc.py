@@ -34,8 +34,11 @@ def batch(b: int, horizon: int, gen: torch.Generator) -> dict:
             "action_is_pad": torch.zeros(b, horizon, dtype=torch.bool)}
 
 
-def time_setting(b: int, draws: int, bf16: bool, steps: int, horizon: int) -> float:
+def time_setting(b: int, draws: int, bf16: bool, compiled: bool, steps: int, horizon: int) -> float:
     policy = make_policy(horizon=horizon, noise_draws=draws)
+    if compiled:  # inductor over the encoder's per-group part, where a step's many small operations are
+        encoder = policy.actor.encoder
+        encoder._pool = torch.compile(encoder._pool, dynamic=True)
     opt = policy.config.get_optimizer_preset().build(policy.get_optim_params())  # what lerobot-train builds
     gen = torch.Generator().manual_seed(0)
     data = [batch(b, horizon, gen) for _ in range(4)]
@@ -48,7 +51,7 @@ def time_setting(b: int, draws: int, bf16: bool, steps: int, horizon: int) -> fl
         opt.step()
         policy.update()
 
-    for i in range(3):
+    for i in range(30 if compiled else 3):  # a compiled setting also compiles its group shapes first
         step(i)
     start = time.perf_counter()
     for i in range(steps):
@@ -63,20 +66,27 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20, help="optimizer steps per timed run")
     ap.add_argument("--horizon", type=int, default=5, help="action chunk H")
     ap.add_argument("--settings", default="128:1:0,128:4:0,256:1:0,512:1:0,128:1:1",
-                    help="comma-separated batch:noise_draws:bf16 settings")
+                    help="comma-separated batch:noise_draws:bf16[:compile] settings (bf16 autocast and "
+                         "torch.compile of the crowd encoder's per-group part: 0 or 1; compile defaults to 0)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    settings = [tuple(int(x) for x in s.split(":")) for s in args.settings.split(",")]
+    try:
+        settings = [tuple(int(x) for x in s.split(":")) for s in args.settings.split(",")]
+    except ValueError:
+        ap.error(f"--settings={args.settings}: integers batch:noise_draws:bf16[:compile] expected")
+    if any(len(s) not in (3, 4) for s in settings):
+        ap.error(f"--settings={args.settings}: each setting has 3 or 4 fields, batch:noise_draws:bf16[:compile]")
+    settings = [(*s, 0)[:4] for s in settings]
     results: dict[tuple, list[float]] = {s: [] for s in settings}
     for _ in range(args.repeats):
         for s in settings:
-            results[s].append(time_setting(s[0], s[1], bool(s[2]), args.steps, args.horizon))
+            results[s].append(time_setting(s[0], s[1], bool(s[2]), bool(s[3]), args.steps, args.horizon))
     print(f"torch {torch.__version__}, {args.threads} threads")
-    print("| batch | noise draws | bf16 autocast | samples/s (median) | steps/s |")
-    print("|---|---|---|---|---|")
-    for (b, d, bf), v in results.items():
+    print("| batch | noise draws | bf16 autocast | torch.compile | samples/s (median) | steps/s |")
+    print("|---|---|---|---|---|---|")
+    for (b, d, bf, comp), v in results.items():
         med = statistics.median(v)
-        print(f"| {b} | {d} | {'yes' if bf else 'no'} | {med:,.0f} | {med / b:.1f} |")
+        print(f"| {b} | {d} | {'yes' if bf else 'no'} | {'yes' if comp else 'no'} | {med:,.0f} | {med / b:.1f} |")
 
 
 if __name__ == "__main__":

@@ -94,6 +94,14 @@ def test_a_malformed_value_in_a_benchmark_script_is_argparse_usage_and_error(ent
     assert lines[-1] == f"{Path(entry).name}: error: argument {ARGPARSE[entry][-1].split('=')[0]}: invalid int value: 'abc'"
 
 
+@pytest.mark.parametrize(("settings", "says"), [("128:4", "each setting has 3 or 4 fields"), ("128:x:0", "integers")])
+def test_a_malformed_bench_bc_setting_is_an_argparse_error(settings, says, monkeypatch, capsys):
+    with pytest.raises(SystemExit) as exc:
+        run("scripts/bench_bc.py", [f"--settings={settings}"], monkeypatch)
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert exc.value.code == 2 and last.startswith(f"bench_bc.py: error: --settings={settings}: ") and says in last
+
+
 @pytest.mark.parametrize("entry", sorted(OTHER))
 def test_a_bad_value_of_a_path_setting_is_one_error_line(entry, monkeypatch, capsys, tmp_path):
     monkeypatch.chdir(tmp_path)
