@@ -58,6 +58,20 @@ def test_teacher_snippets_are_the_demonstrators_chunk_from_the_learners_state():
             np.testing.assert_allclose(s["obs"][0, 7:9], learner_velocity[b], rtol=1e-6)  # the learner's state
 
 
+def test_a_round_is_refused_on_an_incomplete_collection(tmp_path):
+    """A collection killed before its card can only be completed by collect_orca.py --resume,
+    which refuses once a round is in it: the round must not start (nor write a card that marks
+    the collection complete)."""
+    (tmp_path / "policy").mkdir()
+    (tmp_path / "policy" / "config.json").write_text("{}")
+    root = tmp_path / "ds"
+    (root / COLLECTION_FILE).parent.mkdir(parents=True)
+    (root / COLLECTION_FILE).write_text(json.dumps({"seed": 0, "episodes": 8}))
+    with pytest.raises(SystemExit, match="incomplete"):
+        dagger_main([f"--policy_path={tmp_path / 'policy'}", f"--root={root}"])
+    assert not (root / "README.md").exists()
+
+
 def test_a_round_aggregates_labelled_chunks_that_lerobot_reads(tmp_path):
     policy = make_tiny_checkpoint(tmp_path)  # untrained PDPO, H = 5, and its 8-episode dataset at tmp_path/ds
     root = tmp_path / "ds"

@@ -134,6 +134,18 @@ def test_ctrl_c_commits_the_block_then_resumes_to_the_same_dataset(tmp_path):
         np.testing.assert_array_equal(np.asarray(a.hf_dataset[key]), np.asarray(b.hf_dataset[key]))
 
 
+def test_the_card_counts_what_the_dataset_holds_after_a_resume_asking_for_fewer(tmp_path):
+    """A resume with a smaller --episodes keeps every committed episode; the card must say so
+    (its episode count, seeds and frame count describe the same episodes)."""
+    root = tmp_path / "fewer"
+    collect(root, episodes=4, batch_size=2)
+    collect(root, "--resume=true", episodes=2, batch_size=2)
+    meta = LeRobotDatasetMetadata(REPO, root=root)
+    assert meta.total_episodes == 4
+    card = (root / "README.md").read_text()
+    assert f"**Episodes:** 4 ({meta.total_frames} frames at 4 fps), train seeds 0 to 3" in card
+
+
 def test_bad_input_is_refused_and_loses_nothing(dataset_root, tmp_path):
     before = {p: p.stat().st_mtime_ns for p in dataset_root.rglob("*") if p.is_file()}
     with pytest.raises(SystemExit, match="exists and is not empty"):

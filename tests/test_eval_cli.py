@@ -225,8 +225,9 @@ def test_baselines_command_writes_tables_and_resumes(tmp_path, capsys):
 
 def test_a_saved_evaluation_is_reused_only_for_the_same_request(tmp_path, capsys):
     """The main job and the baselines reuse a metrics.json only when it answers the same
-    evaluation: another preset, crowd, policy setting or metric definition runs it again."""
-    from lerobot_crowdnav.evaluation.eval import parse, saved_result
+    evaluation: another preset, crowd, policy setting or metric definition runs it again (and,
+    for a trained policy, another batch size)."""
+    from lerobot_crowdnav.evaluation.eval import parse, request, saved_result
 
     args = ["--policy.type=straight", "--env.task=BoundedCrowdNav-v0", "--eval.n_episodes=2", f"--output_dir={tmp_path}"]
     main(args)
@@ -236,6 +237,9 @@ def test_a_saved_evaluation_is_reused_only_for_the_same_request(tmp_path, capsys
     for other in (["--env.preset=crowdnavpp"], ["--env.human_policy=social_force"], ["--eval.n_episodes=3"],
                   ["--eval.split=val"], ["--policy.type=orca"]):
         assert saved_result(parse(args + other)) is None, other
+    trained = lambda *a: request(parse(["--policy.path=/nowhere", *args[1:], *a]))  # noqa: E731
+    assert trained("--eval.batch_size=1") != trained("--eval.batch_size=2")  # its sampling noise is drawn per batch
+    assert trained("--eval.batch_size=2") == trained("--eval.batch_size=64")  # capped at the episode count
     for version in ("metrics_version", "sim_version"):  # evaluated under older metrics, or episodes
         older = json.loads(json.dumps(saved))
         older["request"][version] -= 1

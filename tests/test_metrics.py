@@ -1,10 +1,12 @@
 """Metrics on hand-built episode records, and the intrusion test on a hand-built state."""
 
+import json
 import math
 
 import numpy as np
 import pytest
 
+from lerobot_crowdnav.measure.episodes import json_safe
 from lerobot_crowdnav.measure.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
 from lerobot_crowdnav.sim.config import CrowdSimConfig
 from lerobot_crowdnav.sim.engine import CrowdSim
@@ -42,6 +44,16 @@ def test_metrics_without_success_or_intrusion_are_nan_not_errors():
     assert "n/a" in markdown_row(m, bounded=True)
     with pytest.raises(ValueError):
         compute_metrics([], dt=0.25)
+
+
+def test_markdown_row_reads_a_saved_metrics_file():
+    """metrics.json saves an undefined mean as null: the baselines reuse a saved row without
+    success (OOB, NT) or intrusion (SD) and write its table line from it."""
+    m = json.loads(json.dumps(json_safe(compute_metrics([rec(0, "wall_collision", 1, 0.0)], dt=0.25))))
+    assert m["oob"] is None and m["nt"] is None and m["sd"] is None
+    for bounded in (True, False):
+        assert markdown_row(m, bounded) == markdown_row(compute_metrics([rec(0, "wall_collision", 1, 0.0)], 0.25), bounded)
+    assert markdown_row(m, bounded=False) == "| 0.0 | n/a | 0.00 | 0.00 | n/a | 100.0 | 0.0 | n/a |"
 
 
 def parked(cfg):

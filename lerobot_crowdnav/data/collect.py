@@ -185,7 +185,7 @@ def collect(cfg: CollectConfig) -> dict:
     bar.close()
     elapsed = time.perf_counter() - start
 
-    rows = [row for block in writer.committed_blocks() for row in block][: cfg.episodes]
+    rows = [row for block in writer.committed_blocks() for row in block]  # a resume may find more than --episodes
     counts = outcome_counts([r["event"] for r in rows])
     summary = {"root": str(root), "episodes": len(rows), "frames": writer.info.total_frames,
                "outcomes": counts, "first_seed": rows[0]["seed"], "last_seed": rows[-1]["seed"],

@@ -13,8 +13,8 @@ Each labelled state becomes a short episode of the dataset, the demonstrator's H
 (``observation.state``, ``action``, ``next.reward`` as in the demonstrations; ``next.done`` marks
 the snippet's end), so the stock ``lerobot-train`` reads the chunk through its delta timestamps like
 any demonstration, padded where the demonstrator reaches the goal early. Snippets in which the
-demonstrator itself collides are left out (the demonstrations keep successes only, for the same
-reason). A round is one committed block of the dataset, its learner episodes a seed block of their
+demonstrator itself collides or runs out of the episode's time are left out (the demonstrations
+keep successes only, for the same reason). A round is one committed block of the dataset, its learner episodes a seed block of their
 own (``DAGGER_SEED_BASE + round * 1,000,000``, train split); ``meta/crowdnav_collection.json``
 (``dagger``) and the dataset card record every round.
 
@@ -69,6 +69,9 @@ class DaggerConfig:
             raise FileNotFoundError(f"--policy_path={self.policy_path}: no config.json (a pretrained_model directory)")
         if self.root is None or not (Path(self.root) / COLLECTION_FILE).exists():
             raise FileNotFoundError(f"--root={self.root}: not a collection made by collect_orca.py ({COLLECTION_FILE})")
+        if not (Path(self.root) / "README.md").exists():  # the card, written last, marks it complete
+            raise ValueError(f"--root={self.root}: the collection is incomplete (no dataset card); complete it with "
+                             "collect_orca.py --resume=true first: no demonstration can follow a round")
         rounds = (SEED_SPLITS["train"][1] - DAGGER_SEED_BASE) // ROUND_SEEDS  # blocks left in the train split
         if not 1 <= self.round < rounds:
             raise ValueError(f"--round must be >= 1 (and below {rounds}), got {self.round}")
@@ -84,7 +87,7 @@ class DaggerConfig:
 def teacher_snippets(sim: CrowdSim, slots: np.ndarray, horizon: int) -> list[dict]:
     """The demonstrator's ``horizon`` steps from the current state of each slot in ``slots``,
     the simulator left as it was. A snippet stops early where the demonstrator's episode ends;
-    it is dropped where that end is a collision."""
+    it is dropped where that end is a collision or a timeout (kept: running on, or the goal)."""
     saved = sim.state_dict()
     obs, act, rew = [], [], []
     event = np.full(sim.num_envs, RUNNING)
@@ -185,7 +188,7 @@ def _update_card(root: Path, rounds: list[dict]) -> None:
     lines = [CARD_MARKER, "## DAgger rounds", "",
              "Episodes from `first_episode_index` on are not demonstrations: each is the demonstrator's chunk "
              "(its first H steps) from a state visited by the policy being trained, labelled by "
-             "`python -m lerobot_crowdnav.data.dagger` (snippets where the demonstrator collides are left out; "
+             "`python -m lerobot_crowdnav.data.dagger` (snippets where the demonstrator collides or times out are left out; "
              "`seed` is the learner's episode).", "",
              "| round | learner episodes (seeds) | learner outcomes | every | H | snippets (from episode) | frames | policy |",
              "|---|---|---|---|---|---|---|---|"]

@@ -115,10 +115,9 @@ def evaluation_lines(metrics: dict | None) -> list[str]:
     if not metrics:
         return lines + ["Not evaluated yet: `lerobot-crowdnav-eval --policy.path=<this directory>`."]
     bounded = metrics["env"]["task"] == "BoundedCrowdNav-v0"
-    row = {k: (float("nan") if v is None else v) for k, v in metrics.items() if k in ("sr", "cr", "tr", "nt", "pl", "itr", "sd", "oob")}
     return lines + [f"{metrics['env']['task']} ({metrics['env']['preset']} preset), {metrics['n_episodes']} "
                     f"{metrics['split']} episodes (`lerobot-crowdnav-eval`):", "", markdown_header(bounded),
-                    markdown_row(row, bounded)]
+                    markdown_row(metrics, bounded)]
 
 
 def run_steps(run: dict, what: str) -> str:

@@ -83,8 +83,9 @@ GENERALIZATION_BASELINES = {"ORCA look-ahead": LA, "ORCA current-state": CS, "st
 class BaselinesConfig:
     # Test episodes per row (the paper: 500).
     n_episodes: int = 500
-    # Environments stepped together per evaluation.
-    batch_size: int = 250
+    # Environments stepped together per evaluation: the main job's 256 by default, so that a trained
+    # model's rows match its report (its sampling noise is drawn per batch).
+    batch_size: int = 256
     # Table keys to run (default: all but generalization): bounded_paper, original_paper,
     # bounded_crowdnavpp, original_crowdnavpp, bounded_crowdnavpp_fixed, original_crowdnavpp_fixed,
     # crowdnavpp_orca_baseline; generalization: the baselines and trained models under the four

@@ -126,10 +126,13 @@ class EvalConfig:
 def request(cfg: EvalConfig) -> dict:
     """What decides an evaluation's numbers (saved in metrics.json): the policy and its settings,
     the resolved simulator and its episodes' version, the split, the episode count and the metric
-    definitions."""
+    definitions; for a trained policy also the batch size, since its sampling noise is drawn for
+    the whole batch at once (the ORCA and straight robots give the same episodes at any)."""
     asked = {"metrics_version": METRICS_VERSION, "sim_version": SIM_VERSION,
              "policy": {"type": cfg.policy.name, **draccus.encode(cfg.policy)},
              "env": cfg.env.resolve().to_dict(), "split": cfg.eval.split, "n_episodes": cfg.eval.n_episodes}
+    if isinstance(cfg.policy, PretrainedPolicyConfig):
+        asked["batch_size"] = min(cfg.eval.batch_size, cfg.eval.n_episodes)  # a larger one is capped
     return json.loads(json.dumps(json_safe(asked), default=str))
 
 

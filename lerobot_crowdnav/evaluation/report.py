@@ -77,7 +77,7 @@ def cell(row: Row, column: str) -> tuple[str, float, float]:
     if n == 0:
         return "n/a", math.nan, math.nan
     mean, std = mean * scale, std * scale
-    text = f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if len(row.metrics) > 1 else "")
+    text = f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if n > 1 else "")  # a spread needs two defined values
     return text, mean, std
 
 

@@ -141,7 +141,7 @@ def compute_metrics(records: list[EpisodeRecord], dt: float) -> dict[str, float]
 
 
 def _fmt(value: float, digits: int = 2) -> str:
-    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+    return "n/a" if math.isnan(value) else f"{value:.{digits}f}"
 
 
 def table_columns(bounded: bool) -> list[str]:
@@ -150,7 +150,9 @@ def table_columns(bounded: bool) -> list[str]:
 
 
 def markdown_row(metrics: dict[str, float], bounded: bool, name: str | None = None) -> str:
-    """``| SR | NT | PL | ITR | SD |`` (+ CR, TR, OOB for the original variant); rates in %."""
+    """``| SR | NT | PL | ITR | SD |`` (+ CR, TR, OOB for the original variant); rates in %.
+    ``metrics`` as computed or as read back from a ``metrics.json`` (undefined means saved as null)."""
+    metrics = {k: math.nan if v is None else v for k, v in metrics.items()}
     cells = {
         "SR": _fmt(100 * metrics["sr"], 1), "NT": _fmt(metrics["nt"]), "PL": _fmt(metrics["pl"]),
         "ITR": _fmt(100 * metrics["itr"]), "SD": _fmt(metrics["sd"]),
