@@ -2,14 +2,16 @@
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
 
-from lerobot_crowdnav.measure.episodes import json_safe
+from lerobot_crowdnav.measure.episodes import json_safe, run_episodes
 from lerobot_crowdnav.measure.metrics import EpisodeRecord, compute_metrics, markdown_header, markdown_row
-from lerobot_crowdnav.sim.config import CrowdSimConfig
+from lerobot_crowdnav.sim.config import CrowdSimConfig, split_seeds
 from lerobot_crowdnav.sim.engine import CrowdSim
+from lerobot_crowdnav.sim.envs import CrowdNavVectorEnv
 
 
 def rec(seed, event, steps, path, intr=0, intr_sum=0.0, oob=False):
@@ -120,3 +122,23 @@ def test_the_step_that_ends_the_episode_is_never_an_intrusion(task, robot_at, go
     res = sim.step(np.zeros((1, 2)))
     assert EVENT_NAMES[res.event[0]] == event
     assert not res.intrusion[0] and math.isinf(res.intrusion_distance[0])
+
+
+def test_run_episodes_waits_quietly_while_only_extra_seeds_end():
+    """A wider env than the episodes asked for runs extra seeds; when they end first, the progress
+    bar has no wanted episode to average yet (no empty-mean warning) and the records stay the
+    wanted seed's."""
+    env = CrowdNavVectorEnv(4, task="CrowdNav-v0", compute_intrusion=False)
+    ended_first = []
+
+    def policy(obs, fresh):  # slot 0 (the wanted seed) stands still, the others drive to their goals
+        actions = env.expert_actions("straight")
+        actions[0] = 0.0
+        ended_first.append(fresh[1:].any() and not fresh[0])
+        return actions
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        records = run_episodes(env, policy, "test", 1, progress=True)
+    assert any(ended_first)  # an extra seed ended while the wanted one still ran
+    assert [r.seed for r in records] == split_seeds("test", 1)

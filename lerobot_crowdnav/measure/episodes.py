@@ -111,7 +111,8 @@ def run_episodes(env: CrowdNavVectorEnv, policy, split: str, n_episodes: int,
                 if rec.seed in wanted and rec.seed not in records:
                     records[rec.seed] = rec
                     bar.update(1)
-            bar.set_postfix(sr=f"{np.mean([r.event == 'success' for r in records.values()]):.3f}")
+            if records:  # the first episodes to end may all be extra seeds of a wider env
+                bar.set_postfix(sr=f"{np.mean([r.event == 'success' for r in records.values()]):.3f}")
     bar.close()
     return [records[s] for s in seeds]
 
