@@ -1,4 +1,4 @@
-"""Metrics on hand-built episode records, and the intrusion test on a hand-built state."""
+"""Metrics on hand-built episode records, the intrusion test on a hand-built state, and the evaluation loop's records."""
 
 import json
 import math
