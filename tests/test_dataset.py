@@ -144,6 +144,7 @@ def test_the_card_counts_what_the_dataset_holds_after_a_resume_asking_for_fewer(
     assert meta.total_episodes == 4
     card = (root / "README.md").read_text()
     assert f"**Episodes:** 4 ({meta.total_frames} frames at 4 fps), train seeds 0 to 3" in card
+    assert "s (the last invocation, which resumed after 4 committed episodes)." in card  # its time is not the whole
 
 
 def test_bad_input_is_refused_and_loses_nothing(dataset_root, tmp_path):

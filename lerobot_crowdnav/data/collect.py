@@ -189,7 +189,7 @@ def collect(cfg: CollectConfig) -> dict:
     counts = outcome_counts([r["event"] for r in rows])
     summary = {"root": str(root), "episodes": len(rows), "frames": writer.info.total_frames,
                "outcomes": counts, "first_seed": rows[0]["seed"], "last_seed": rows[-1]["seed"],
-               "wall_time_s": elapsed}
+               "wall_time_s": elapsed, "resumed_after": len(done)}
     # The card comes last and marks the dataset complete (the main job's test for it).
     fault.write_text(root / "README.md", str(dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary)))
     summary["size_mb"] = _size_mb(root)

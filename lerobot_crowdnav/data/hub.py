@@ -41,6 +41,9 @@ ORCA_ROBOT_CARD = {
 def dataset_card(repo_id: str, info, sim_cfg: CrowdSimConfig, collection: dict, summary: dict):
     """The dataset card (lerobot's template and YAML header) with the collection's facts."""
     outcomes = ", ".join(f"{k} {v}" for k, v in summary["outcomes"].items())
+    # A resumed collection's earlier invocations are not timed: say whose time it is.
+    resumed = f" (the last invocation, which resumed after {summary['resumed_after']:,} committed episodes)" \
+        if summary.get("resumed_after") else ""
     description = f"""ORCA demonstrations in the crowd-navigation simulator of lerobot-crowdnav (a
 batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
 
@@ -49,7 +52,7 @@ batched reproduction of CrowdNav++), for pretraining the PDPO diffusion policy.
 - **Episodes:** {summary['episodes']} ({summary['frames']} frames at {FPS} fps), train seeds {summary['first_seed']} to {summary['last_seed']} (consecutive seeds from {collection['seed']}, keep = `{collection['keep']}`). Outcomes: {outcomes}.
 - **Features:** `observation.state` (269 floats: robot state, velocity, 20 humans x 6 positions relative to the robot, visibility mask; names in `meta/info.json`), `action` = executed velocity (vx, vy) in m/s, `next.reward`, `next.done`, `next.success`. Episode metadata (`meta/episodes`) adds `seed` and `event`.
 - **Action chunks:** not stored. A policy with `action_delta_indices = range(H)` (PDPO: H = 5) gets, at step t, the executed actions t .. t+H-1 of the same episode through lerobot's `delta_timestamps` (`[0, 0.25, ..., (H-1)/4]` s), with `action_is_pad` marking the steps past the episode's end.
-- **Collected with:** `python datasets_scripts/collect_orca.py --episodes {collection['episodes']} --env.task={sim_cfg.task} --env.preset={sim_cfg.preset} --env.orca_robot={sim_cfg.orca_robot} --seed={collection['seed']} --keep={collection['keep']}` in {summary['wall_time_s']:.1f} s.
+- **Collected with:** `python datasets_scripts/collect_orca.py --episodes {collection['episodes']} --env.task={sim_cfg.task} --env.preset={sim_cfg.preset} --env.orca_robot={sim_cfg.orca_robot} --seed={collection['seed']} --keep={collection['keep']}` in {summary['wall_time_s']:.1f} s{resumed}.
 """
     return create_lerobot_dataset_card(
         tags=["crowd-navigation", "orca", "lerobot-crowdnav", "pdpo"], dataset_info=info,
