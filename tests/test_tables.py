@@ -38,13 +38,6 @@ def copy_repo(root: Path, data: bool = True) -> None:
         shutil.copytree(DATA, root / "docs" / "data")
 
 
-def test_a_cell_gives_a_spread_only_over_two_defined_values():
-    """NT is undefined for a seed without success: the other seed's value stands alone, no ± 0."""
-    row = Row("PDPO", [{"nt": 12.0, "sr": 0.5}, {"nt": None, "sr": 0.0}])
-    assert cell(row, "NT")[0] == "12.00"
-    assert cell(row, "SR")[0] == "25.0 ± 25.0"
-
-
 def test_committed_tables_are_what_make_tables_writes():
     """Run `make tables` (or python -m lerobot_crowdnav.evaluation.tables) and commit the result."""
     used = set()
