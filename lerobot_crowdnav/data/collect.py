@@ -25,7 +25,7 @@ from tqdm import tqdm
 from .. import fault
 from ..cli import run_cli
 from ..sim.config import DAGGER_SEED_BASE, SEED_SPLITS, CrowdSimConfig
-from .dataset import COLLECTION_FILE, DemonstrationWriter, committed_episodes_files, outcome_counts
+from .dataset import CARD_FILE, COLLECTION_FILE, DemonstrationWriter, committed_episodes_files, outcome_counts
 from .hub import dataset_card, push_dataset_to_dir, split_repo_id
 from ..sim.engine import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
 
@@ -191,7 +191,7 @@ def collect(cfg: CollectConfig) -> dict:
                "outcomes": counts, "first_seed": rows[0]["seed"], "last_seed": rows[-1]["seed"],
                "wall_time_s": elapsed, "resumed_after": len(done)}
     # The card comes last and marks the dataset complete (the main job's test for it).
-    fault.write_text(root / "README.md", str(dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary)))
+    fault.write_text(root / CARD_FILE, str(dataset_card(cfg.repo_id, writer.info, sim_cfg, collection, summary)))
     summary["size_mb"] = _size_mb(root)
     if cfg.push_to_hub_dir:
         summary["hub_dir"] = str(push_dataset_to_dir(root, cfg.repo_id, cfg.push_to_hub_dir,

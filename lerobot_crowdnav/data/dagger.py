@@ -14,8 +14,8 @@ Each labelled state becomes a short episode of the dataset, the demonstrator's H
 the snippet's end), so the stock ``lerobot-train`` reads the chunk through its delta timestamps like
 any demonstration, padded where the demonstrator reaches the goal early. Snippets in which the
 demonstrator itself collides or runs out of the episode's time are left out (the demonstrations
-keep successes only, for the same reason). A round is one committed block of the dataset, its learner episodes a seed block of their
-own (``DAGGER_SEED_BASE + round * 1,000,000``, train split); ``meta/crowdnav_collection.json``
+keep successes only, for the same reason). A round is one committed block of the dataset, its
+learner episodes a seed block of their own (``DAGGER_SEED_BASE + round * 1,000,000``, train split); ``meta/crowdnav_collection.json``
 (``dagger``) and the dataset card record every round.
 
     python -m lerobot_crowdnav.data.dagger --policy_path=CKPT --root=DATASET --round=1 --episodes=500
@@ -37,7 +37,7 @@ from ..checkpoint_files import POLICY_CONFIG
 from ..cli import run_cli
 from ..sim.config import DAGGER_ROUND_SEEDS as ROUND_SEEDS, DAGGER_SEED_BASE, SEED_SPLITS, CrowdSimConfig
 from ..sim.engine import EVENT_NAMES, RUNNING, SUCCESS, CrowdSim
-from .dataset import COLLECTION_FILE, DemonstrationWriter
+from .dataset import CARD_FILE, COLLECTION_FILE, DemonstrationWriter, collection_complete
 
 CARD_MARKER = "\n<!-- dagger rounds -->\n"
 
@@ -69,7 +69,7 @@ class DaggerConfig:
             raise FileNotFoundError(f"--policy_path={self.policy_path}: no config.json (a pretrained_model directory)")
         if self.root is None or not (Path(self.root) / COLLECTION_FILE).exists():
             raise FileNotFoundError(f"--root={self.root}: not a collection made by collect_orca.py ({COLLECTION_FILE})")
-        if not (Path(self.root) / "README.md").exists():  # the card, written last, marks it complete
+        if not collection_complete(self.root):
             raise ValueError(f"--root={self.root}: the collection is incomplete (no dataset card); complete it with "
                              "collect_orca.py --resume=true first: no demonstration can follow a round")
         rounds = (SEED_SPLITS["train"][1] - DAGGER_SEED_BASE) // ROUND_SEEDS  # blocks left in the train split
@@ -183,7 +183,7 @@ def dagger(cfg: DaggerConfig) -> dict:
 
 def _update_card(root: Path, rounds: list[dict]) -> None:
     """The dataset card's DAgger section, rewritten from the rounds' records."""
-    card = root / "README.md"
+    card = root / CARD_FILE
     text = card.read_text().split(CARD_MARKER)[0] if card.exists() else ""
     lines = [CARD_MARKER, "## DAgger rounds", "",
              "Episodes from `first_episode_index` on are not demonstrations: each is the demonstrator's chunk "

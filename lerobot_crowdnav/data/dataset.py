@@ -55,7 +55,13 @@ FPS = 4
 TASK = "Navigate to the goal through the crowd."
 STAT_QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 COLLECTION_FILE = "meta/crowdnav_collection.json"  # what was collected, for --resume checks
+CARD_FILE = "README.md"  # the dataset card, written last: its presence marks a complete collection
 
+
+
+def collection_complete(root: str | Path) -> bool:
+    """Whether collect_orca.py finished ``root``: it writes the card last, so a killed one has none."""
+    return (Path(root) / CARD_FILE).exists()
 
 def observation_names(cfg: CrowdSimConfig) -> list[str]:
     """Column names of ``observation.state`` (positions relative to the robot, world axes)."""

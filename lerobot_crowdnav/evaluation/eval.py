@@ -96,6 +96,11 @@ class EvalSettings:
     # Also save this many episodes (the first seeds) as GIFs under output_dir/videos.
     n_videos: int = 0
 
+    @property
+    def num_envs(self) -> int:
+        """The environments stepped together: the batch size, capped at the episode count."""
+        return min(self.batch_size, self.n_episodes)
+
     def validate(self) -> None:
         if self.split not in SEED_SPLITS:
             raise ValueError(f"--eval.split must be one of {', '.join(SEED_SPLITS)}, got {self.split!r}")
@@ -132,7 +137,7 @@ def request(cfg: EvalConfig) -> dict:
              "policy": {"type": cfg.policy.name, **draccus.encode(cfg.policy)},
              "env": cfg.env.resolve().to_dict(), "split": cfg.eval.split, "n_episodes": cfg.eval.n_episodes}
     if isinstance(cfg.policy, PretrainedPolicyConfig):
-        asked["batch_size"] = min(cfg.eval.batch_size, cfg.eval.n_episodes)  # a larger one is capped
+        asked["batch_size"] = cfg.eval.num_envs
     return json.loads(json.dumps(json_safe(asked), default=str))
 
 
@@ -170,8 +175,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     metrics_path = out / "metrics.json"
     if metrics_path.exists() and not cfg.overwrite:
         raise FileExistsError(f"{metrics_path} exists; pass --overwrite=true to replace it or choose another --output_dir")
-    batch = min(cfg.eval.batch_size, cfg.eval.n_episodes)
-    env = CrowdNavVectorEnv(batch, config=sim_cfg)
+    env = CrowdNavVectorEnv(cfg.eval.num_envs, config=sim_cfg)
     actor = policy
     if isinstance(cfg.policy, PretrainedPolicyConfig):
         if cfg.policy.path is None:

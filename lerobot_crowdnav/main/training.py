@@ -107,13 +107,13 @@ class Training:
         """The demonstrations; a complete collection in another simulator (another preset) is not
         taken: the resume it gets instead refuses the changed settings."""
         from ..data.collect import main as collect_main
-        from ..data.dataset import COLLECTION_FILE
+        from ..data.dataset import COLLECTION_FILE, collection_complete
 
         root = self.paths.dataset_root(task)
         info = root / "meta" / "info.json"
         robot = self.cfg.demonstrator  # None: the preset's
         env = self.demonstration_env(task).to_dict()
-        done = ((root / "README.md").exists()  # written last: a collection killed before it resumes
+        done = (collection_complete(root)  # a collection killed before its card resumes
                 and json.loads(info.read_text())["total_episodes"] >= self.cfg.demos
                 and json.loads((root / COLLECTION_FILE).read_text())["env"] == json.loads(json.dumps(env)))
         argv = ["python", "datasets_scripts/collect_orca.py", f"--episodes={self.cfg.demos}", *self._env_flags(task),
