@@ -241,7 +241,7 @@ def test_generalization_tables_come_from_the_report_csv_and_wait_for_it(tmp_path
 def test_the_frozen_tables_keep_the_policies_shipped_before_whatever_main_run_is_imported(tmp_path):
     """docs/data/plain_bc and look_ahead are frozen: importing a new `make main` run rewrites the
     main tables, not theirs, which show the frozen files' PDPO rows, relabelled, with their own
-    cells; look_ahead holds the Bounded pair only (its original pair is still shipped)."""
+    cells."""
     root = tmp_path / "repo"
     copy_repo(root)
     before = blocks((root / "docs" / "results.md").read_text())
@@ -262,4 +262,7 @@ def test_the_frozen_tables_keep_the_policies_shipped_before_whatever_main_run_is
     look_ahead = {r["method"]: r for r in read_csv(DATA / "look_ahead" / "results_bounded.csv")}
     sr = float(look_ahead["PDPO (H = 5, fine-tuned)"]["SR_mean"])
     assert f"| Bounded | PDPO (H = 5, look-ahead teacher, fine-tuned) | {sr:.1f} |" in got["look-ahead"]
-    assert "| original |" not in got["look-ahead"] and "look-ahead-generalization-original" not in got
+    frozen = {r["method"]: r for r in read_csv(DATA / "look_ahead" / "results_original.csv")}
+    sr = float(frozen["PDPO w/o action chunk (H = 1, fine-tuned)"]["SR_mean"])
+    assert f"| original | PDPO w/o action chunk (H = 1, look-ahead teacher, fine-tuned) | {sr:.1f} |" in got["look-ahead"]
+    assert got["look-ahead-generalization-original"].count("look-ahead teacher, fine-tuned)") == 2

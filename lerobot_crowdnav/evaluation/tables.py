@@ -216,19 +216,17 @@ def _baseline_blocks(key: str, *, bounded: bool, results: bool = True) -> dict[s
     return blocks
 
 
-def _shipped_before_blocks(key: str, recipe: str, tasks: tuple[str, ...] = ("bounded", "original")) -> dict[str, Block]:
+def _shipped_before_blocks(key: str, recipe: str) -> dict[str, Block]:
     """The frozen ``make main`` tables of policies shipped before (``<key>/``), named ``<key>-*``
-    (``_`` as ``-``): the results of the ``tasks`` whose policies were replaced, the wall audit
-    (with Bounded) and their generalization tables, the PDPO rows labelled with the ``recipe`` that
-    made them."""
+    (``_`` as ``-``): the results of both benchmarks, the wall audit and both generalization
+    tables, the PDPO rows labelled with the ``recipe`` that made them."""
     relabel = {f"PDPO{h} ({horizon}, fine-tuned)": f"PDPO{h} ({horizon}, {recipe}, fine-tuned)"
                for h, horizon in ((" w/o action chunk", "H = 1"), ("", "H = 5"))}
     name = key.replace("_", "-")
-    blocks = {name: Block("results", [Part(f"{key}/results_{task}.csv", relabel, first=(BENCHMARKS[task],))
-                                      for task in tasks], lead=("benchmark",))}
-    if "bounded" in tasks:
-        blocks[f"{name}-wall-audit"] = Block("wall_audit", [Part(f"{key}/wall_audit.csv", relabel)])
-    for task in tasks:
+    blocks = {name: Block("results", [Part(f"{key}/results_{task}.csv", relabel, first=(benchmark,))
+                                      for task, benchmark in BENCHMARKS.items()], lead=("benchmark",)),
+              f"{name}-wall-audit": Block("wall_audit", [Part(f"{key}/wall_audit.csv", relabel)])}
+    for task in BENCHMARKS:
         blocks[f"{name}-generalization-{task}"] = Block(
             "generalization", [Part(f"{key}/generalization_{task}.csv", relabel)], bounded=task == "bounded")
     return blocks
@@ -253,8 +251,8 @@ BLOCKS: dict[str, Block] = {
                                       label="policy", columns=BASELINE_COLUMNS[:-1]),
     # docs/results.md: the policies shipped until 2026-11-26, by the paper's plain-BC recipes (frozen data)
     **_shipped_before_blocks("plain_bc", "plain BC"),
-    # docs/results.md: the Bounded pair shipped until 2026-11-29, taught by the look-ahead ORCA robot (frozen data)
-    **_shipped_before_blocks("look_ahead", "look-ahead teacher", tasks=("bounded",)),
+    # docs/results.md: the pairs shipped until 2026-11-29, taught by the look-ahead ORCA robot (frozen data)
+    **_shipped_before_blocks("look_ahead", "look-ahead teacher"),
     # docs/results.md: make main's generalization tables (optional until a run with --crowds made them)
     "generalization-bounded": Block("generalization", [Part("main/generalization_bounded.csv")], optional=True,
                                     bounded=True),
