@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml plugins/lerobot_env_crowdnav/pyproject.toml policies/le
 		-e policies/lerobot_policy_crowdnavpp
 	@touch $@
 
-# The main job on embedded defaults (about a quarter of an hour on one CPU core, README): the policies shipped in
+# The main job on embedded defaults (7.5-15 min on one CPU core, README): the policies shipped in
 # models/lerobot-crowdnav and the baselines on the 500 test seeds -> outputs/main/report.md.
 # MAIN_ARGS passes flags, e.g. MAIN_ARGS=--config_path=configs/main/retrain.yaml trains them all
 # from scratch (demonstrations -> lerobot-train -> diffusion PPO; rerunning resumes).
