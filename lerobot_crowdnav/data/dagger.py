@@ -15,8 +15,8 @@ the snippet's end), so the stock ``lerobot-train`` reads the chunk through its d
 any demonstration, padded where the demonstrator reaches the goal early. Snippets in which the
 demonstrator itself collides or runs out of the episode's time are left out (the demonstrations
 keep successes only, for the same reason). A round is one committed block of the dataset, its
-learner episodes a seed block of their own (``DAGGER_SEED_BASE + round * 1,000,000``, train split); ``meta/crowdnav_collection.json``
-(``dagger``) and the dataset card record every round.
+learner episodes a seed block of their own (``DAGGER_SEED_BASE + round * 1,000,000``, train
+split); ``meta/crowdnav_collection.json`` (``dagger``) and the dataset card record every round.
 
     python -m lerobot_crowdnav.data.dagger --policy_path=CKPT --root=DATASET --round=1 --episodes=500
     lerobot-train --config_path=CKPT/train_config.json --resume=true --steps=N   # train on the aggregate

@@ -58,10 +58,10 @@ COLLECTION_FILE = "meta/crowdnav_collection.json"  # what was collected, for --r
 CARD_FILE = "README.md"  # the dataset card, written last: its presence marks a complete collection
 
 
-
 def collection_complete(root: str | Path) -> bool:
     """Whether collect_orca.py finished ``root``: it writes the card last, so a killed one has none."""
     return (Path(root) / CARD_FILE).exists()
+
 
 def observation_names(cfg: CrowdSimConfig) -> list[str]:
     """Column names of ``observation.state`` (positions relative to the robot, world axes)."""

@@ -25,7 +25,7 @@ from ..checkpoint_files import (BEST_INFO, CRITIC, FINETUNE_CONFIG, POLICY_CONFI
                                 TRAIN_PPO_CONFIG, WEIGHTS)
 from ..cli import run_cli
 from ..sim.config import SEED_SPLITS, CrowdSimConfig
-from .dataset import FPS
+from .dataset import CARD_FILE, COLLECTION_FILE, FPS, collection_complete
 
 REPO_IGNORE = ("images", "videos", "*.tmp")  # lerobot's push_to_hub skips images/ (no videos here)
 
@@ -89,8 +89,8 @@ def push_dataset_to_dir(root: str | Path, repo_id: str, hub_dir: str | Path, ove
     root = Path(root)
     if not (root / "meta/info.json").exists():
         raise FileNotFoundError(f"{root} is not a LeRobotDataset (no meta/info.json)")
-    if not (root / "README.md").exists():
-        raise FileNotFoundError(f"{root} has no dataset card (README.md)")
+    if not collection_complete(root):
+        raise FileNotFoundError(f"{root} has no dataset card ({CARD_FILE})")
     org, name = split_repo_id(repo_id)
     return _publish(Path(hub_dir) / "datasets" / org / name, overwrite,
                     lambda dst: shutil.copytree(root, dst, ignore=shutil.ignore_patterns(*REPO_IGNORE),
@@ -306,8 +306,6 @@ def collection_record(train: dict) -> dict:
     """The collection record (``meta/crowdnav_collection.json``: simulator, DAgger rounds) of the
     dataset a policy was pretrained on, where that dataset is on this machine; else ``{}``."""
     import json
-
-    from .dataset import COLLECTION_FILE
 
     path = Path((train.get("dataset") or {}).get("root") or "") / COLLECTION_FILE
     return json.loads(path.read_text()) if path.is_file() else {}
