@@ -1,28 +1,31 @@
 """The CrowdNav++ baseline's learning curve so far, drawn against the reference's own reward curve
 at the same env steps (docs/crowdnavpp.md prints its output).
 
-    python scripts/crowdnavpp_curve.py --run=/work/runs/bounded_crowdnavpp/crowdnavpp/bounded_s425
+    python scripts/crowdnavpp_curve.py --run=outputs/bounded_crowdnavpp/crowdnavpp/bounded_s425
 
 reads the run's ``progress.jsonl`` (one line per PPO iteration, written by
 ``lerobot-crowdnav-train-ppo``; the run may still be going: the file is only read) and the
 reference's reward curve ``docs/data/crowdnavpp_reference_reward.csv``, and writes
 
 * a PNG (``--output_png``): the mean training episode reward per window of ``--window`` env steps
-  for the run and for the reference's two logged trainings, and below it the run's validation
+  for the run and for the reference's two logged trainings; below it the run's validation
   success (every validation, with its 95 % Wilson interval when known, as in the table) and
-  training success (per window);
+  training success (per window); at the bottom how its training episodes failed (per window:
+  human collision, wall collision, timeout), which tells a dip's cause;
 * a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
   reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
-  run's training success, the latest validation success in the window (with its 95 % Wilson
+  run's training success and failures (human / wall / timeout), the latest validation success in
+  the window (with its 95 % Wilson
   interval over the run's ``val.n_episodes``, read from its last checkpoint's
   ``train_ppo_config.json``), and the run's cumulative training wall time (``time/wall_s``) at the
   window's last iteration.
 
 Windows are ``[k W, (k + 1) W)`` for W = ``--window`` env steps, an iteration or a log line
 belonging to the window of the env-step count it reports (the count at its end). The run's
-training reward and success of a window are episode-weighted: the sum over its iterations of
-``train/episode_return x train/episodes`` (resp. ``train/success_rate x train/episodes``) over
-the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window.
+training reward and outcome rates of a window are episode-weighted: the sum over its iterations of
+``train/episode_return x train/episodes`` (resp. ``train/<outcome>_rate x train/episodes``) over
+the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window
+(an outcome a log does not report reads n/a).
 The reference's value is the plain mean of ``eprewmean`` over the log lines in the window
 (``eprewmean`` being the reference's mean return of its last 100 training episodes). A window the
 run has not finished is marked "(so far)" in the table and drawn hollow.
@@ -41,7 +44,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_crowdnav.checkpoint_files import PRETRAINED_MODEL, TRAIN_PPO_CONFIG
@@ -53,8 +56,12 @@ ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
 DEFAULT_PNG = ROOT / "docs" / "figures" / "crowdnavpp_bounded_curve.png"
 REFERENCE_COLUMNS = ("eprewmean_rand", "eprewmean_non_rand")
+# How a training episode ends: progress.jsonl's train/<outcome>_rate.
+OUTCOMES = ("success", "human_collision", "wall_collision", "timeout")
+FAILURES = OUTCOMES[1:]
 HEADER = ["env steps (window)", "train reward", "reference reward, rand", "reference reward, non-rand",
-          "train success (%)", "validation success (%) [95 % CI] at env steps", "wall time (h, cumulative)"]
+          "train success (%)", "train human / wall collision / timeout (%)",
+          "validation success (%) [95 % CI] at env steps", "wall time (h, cumulative)"]
 
 
 @dataclass
@@ -93,7 +100,7 @@ class Window:
     last_step: int
     episodes: int = 0  # training episodes that ended in the window
     reward: float = math.nan  # episode-weighted training return
-    success: float = math.nan  # episode-weighted training success rate
+    rates: dict[str, float] = field(default_factory=dict)  # episode-weighted rate of each of OUTCOMES
     val_success: float = math.nan  # latest validation success in the window
     val_step: int | None = None
     wall_s: float = math.nan  # cumulative training wall time at the window's last timed iteration
@@ -150,8 +157,8 @@ def read_reference(path: Path, window: int) -> dict[str, dict[int, float]]:
 # -- the run ------------------------------------------------------------------------------------
 
 def run_windows(rows: list[dict], window: int) -> list[Window]:
-    """Per-window training reward and success (episode-weighted), latest validation success and
-    cumulative wall time of a run's progress lines."""
+    """Per-window training reward and outcome rates (episode-weighted), latest validation success
+    and cumulative wall time of a run's progress lines."""
     by_k: dict[int, list[dict]] = {}
     for r in rows:
         by_k.setdefault(int(r["env_steps"]) // window, []).append(r)
@@ -165,7 +172,9 @@ def run_windows(rows: list[dict], window: int) -> list[Window]:
         w.episodes = sum(int(r["train/episodes"]) for r in train)
         if w.episodes:
             w.reward = math.fsum(r["train/episode_return"] * r["train/episodes"] for r in train) / w.episodes
-            w.success = math.fsum(r["train/success_rate"] * r["train/episodes"] for r in train) / w.episodes
+            for o in OUTCOMES:
+                w.rates[o] = (math.fsum(r[f"train/{o}_rate"] * r["train/episodes"] for r in train) / w.episodes
+                              if all(r.get(f"train/{o}_rate") is not None for r in train) else math.nan)
         val = [r for r in rs if r.get("val/success_rate") is not None]
         if val:
             w.val_success, w.val_step = float(val[-1]["val/success_rate"]), int(val[-1]["env_steps"])
@@ -181,6 +190,10 @@ def run_windows(rows: list[dict], window: int) -> list[Window]:
 
 def _num(x: float, fmt: str) -> str:
     return "n/a" if x is None or math.isnan(x) else format(x, fmt)
+
+
+def _rate(w: Window, outcome: str) -> str:
+    return _num(100 * w.rates.get(outcome, math.nan), ".1f")
 
 
 def _interval(rate: float, n: int | None) -> str:
@@ -207,7 +220,7 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
         span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
         val = "" if w.val_step is None else f"{100 * w.val_success:.0f}{_interval(w.val_success, val_episodes)} at {w.val_step:,}"
         cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REFERENCE_COLUMNS),
-                 _num(100 * w.success, ".1f"), val, _num(w.wall_s / 3600, ".2f")]
+                 _rate(w, "success"), " / ".join(_rate(w, o) for o in FAILURES), val, _num(w.wall_s / 3600, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -226,7 +239,7 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     done = [w for w in windows if w.complete and w.episodes]
     partial = [w for w in windows if not w.complete and w.episodes]
 
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True, height_ratios=(3, 2))
+    fig, (top, bottom, causes) = plt.subplots(3, 1, figsize=(8, 8.4), sharex=True, height_ratios=(3, 2, 2))
     for c, label, colour in ((REFERENCE_COLUMNS[0], "reference (GST_predictor_rand)", "tab:gray"),
                              (REFERENCE_COLUMNS[1], "reference (GST_predictor_non_rand)", "black")):
         ks = [k for k in sorted(reference[c]) if k * window < x_max]
@@ -248,18 +261,23 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
                [100 * hi - y for y, (_, hi) in zip(ys, bounds, strict=True)]]
     bottom.errorbar([s for s, _ in val], ys, yerr=err if val_episodes else None, fmt="s-", color="tab:green",
                     capsize=2, label="validation success" + (f" ({val_episodes} episodes, 95 % CI)" if val_episodes else ""))
-    bottom.plot([centre[w.k] for w in done], [100 * w.success for w in done], "o-", color="tab:orange",
-                label="training success (per window)")
-    if partial:
-        bottom.plot([centre[w.k] for w in partial], [100 * w.success for w in partial], "o", mfc="none",
-                    color="tab:orange")
+    for ax, outcome, colour, label in ((bottom, "success", "tab:orange", "training success (per window)"),
+                                       (causes, "human_collision", "tab:red", "human collision"),
+                                       (causes, "wall_collision", "tab:brown", "wall collision"),
+                                       (causes, "timeout", "tab:purple", "timeout")):
+        ax.plot([centre[w.k] for w in done], [100 * w.rates[outcome] for w in done], "o-", color=colour, label=label)
+        if partial:
+            ax.plot([centre[w.k] for w in partial], [100 * w.rates[outcome] for w in partial], "o", mfc="none",
+                    color=colour)
     bottom.set_ylabel("this run: success (%)")
-    bottom.set_xlabel("env steps")
-    bottom.set_ylim(bottom=0)
-    bottom.grid(alpha=0.3)
-    bottom.legend(fontsize=8, loc="upper left")
-    bottom.set_xlim(0, x_max)
-    bottom.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1e6:g} M" if x else "0"))
+    causes.set_ylabel("this run: training\nepisodes ending in (%)")
+    causes.set_xlabel("env steps")
+    for ax in (bottom, causes):
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left" if ax is bottom else "upper right")
+    causes.set_xlim(0, x_max)
+    causes.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1e6:g} M" if x else "0"))
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -23,12 +23,15 @@ spec.loader.exec_module(curve_mod)
 W = 1000  # window width of the synthetic data
 
 
-def it(step, episodes, ret=None, sr=None, **extra):
+def it(step, episodes, ret=None, sr=None, fail=None, **extra):
     """One PPO iteration line as lerobot-crowdnav-train-ppo writes it (no train/* but the count when
-    no episode ended)."""
+    no episode ended); ``fail``: the human collision, wall collision and timeout rates (None: a log
+    that does not report them)."""
     row = {"iteration": step // 200, "env_steps": step, "train/episodes": episodes, "time/wall_s": step / 10}
     if episodes:
         row |= {"train/episode_return": ret, "train/success_rate": sr}
+    if fail is not None:
+        row |= {f"train/{o}_rate": r for o, r in zip(curve_mod.FAILURES, fail, strict=True)}
     return row | extra
 
 
@@ -36,17 +39,22 @@ def it(step, episodes, ret=None, sr=None, **extra):
 # Window 1 [1000, 2000): no validation. Window 2 [2000, 3000): reached up to 2200 only (so far).
 PROGRESS = [
     {"iteration": 0, "env_steps": 0, "val/success_rate": 0.0, "val/episode_return": -20.0},
-    it(200, 2, -10.0, 0.0), it(400, 0), it(600, 3, -5.0, 1 / 3), it(800, 5, 1.0, 0.4, **{"val/success_rate": 0.25}),
-    it(1000, 4, 2.0, 0.5), it(1200, 4, 4.0, 0.25), it(1400, 2, -1.0, 0.0), it(1600, 0), it(1800, 10, 3.0, 0.6),
-    it(2000, 1, 7.0, 1.0), it(2200, 3, 3.0, 1 / 3, **{"val/success_rate": 0.5}),
+    it(200, 2, -10.0, 0.0, (0.5, 0.5, 0.0)), it(400, 0), it(600, 3, -5.0, 1 / 3, (1 / 3, 1 / 3, 0.0)),
+    it(800, 5, 1.0, 0.4, (0.2, 0.2, 0.2), **{"val/success_rate": 0.25}),
+    it(1000, 4, 2.0, 0.5), it(1200, 4, 4.0, 0.25, (0.5, 0.25, 0.0)), it(1400, 2, -1.0, 0.0, (1.0, 0.0, 0.0)),
+    it(1600, 0), it(1800, 10, 3.0, 0.6, (0.2, 0.1, 0.1)),
+    it(2000, 1, 7.0, 1.0, (0.0, 0.0, 0.0)), it(2200, 3, 3.0, 1 / 3, (1 / 3, 0.0, 1 / 3), **{"val/success_rate": 0.5}),
 ]
-# Episode-weighted by hand: window 0 (2 * -10 + 3 * -5 + 5 * 1) / 10 = -3.0 and success (0 + 1 + 2) / 10;
-# window 1 (8 + 16 - 2 + 30) / 20 = 2.6 and (2 + 1 + 0 + 6) / 20; window 2 (7 + 9) / 4 = 4.0 and 2 / 4.
+# Episode-weighted by hand: window 0 (2 * -10 + 3 * -5 + 5 * 1) / 10 = -3.0, success (0 + 1 + 2) / 10,
+# human collisions, wall collisions, timeouts (1 + 1 + 1) / 10, (1 + 1 + 1) / 10, (0 + 0 + 1) / 10;
+# window 1 (8 + 16 - 2 + 30) / 20 = 2.6 and (2 + 1 + 0 + 6) / 20, its failures unknown (the line at
+# 1000 does not report them); window 2 (7 + 9) / 4 = 4.0, 2 / 4, failures 1 / 4, 0, 1 / 4.
 # (A plain mean over iterations would give -4.67, 2.0 and 5.0 instead.)
-EXPECTED = [  # k, reward, success, val success, val step, wall_s, complete
-    (0, -3.0, 0.3, 0.25, 800, 80.0, True),
-    (1, 2.6, 0.45, math.nan, None, 180.0, True),
-    (2, 4.0, 0.5, 0.5, 2200, 220.0, False),
+NAN3 = (math.nan,) * 3
+EXPECTED = [  # k, reward, success, (human, wall, timeout), val success, val step, wall_s, complete
+    (0, -3.0, 0.3, (0.3, 0.3, 0.1), 0.25, 800, 80.0, True),
+    (1, 2.6, 0.45, NAN3, math.nan, None, 180.0, True),
+    (2, 4.0, 0.5, (0.25, 0.0, 0.25), 0.5, 2200, 220.0, False),
 ]
 
 
@@ -76,9 +84,10 @@ NON_RAND = [(250, -3.0), (500, -2.0), (750, -1.5), (1000, 8.0)]  # window 0 only
 def test_run_windows_are_episode_weighted_with_latest_validation_and_wall_time():
     windows = curve_mod.run_windows(PROGRESS, W)
     assert [w.k for w in windows] == [0, 1, 2]
-    for w, (k, reward, success, val, val_step, wall, complete) in zip(windows, EXPECTED, strict=True):
+    for w, (k, reward, success, failures, val, val_step, wall, complete) in zip(windows, EXPECTED, strict=True):
         assert w.k == k and w.complete is complete and w.val_step == val_step
-        assert w.reward == pytest.approx(reward, abs=1e-12) and w.success == pytest.approx(success, abs=1e-12)
+        assert w.reward == pytest.approx(reward, abs=1e-12) and w.rates["success"] == pytest.approx(success, abs=1e-12)
+        assert [w.rates[o] for o in curve_mod.FAILURES] == pytest.approx(failures, abs=1e-12, nan_ok=True)
         assert (math.isnan(w.val_success) and math.isnan(val)) or w.val_success == val
         assert w.wall_s == wall
     assert [w.episodes for w in windows] == [10, 20, 4]
@@ -130,9 +139,9 @@ def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
     windows, reference = curve_mod.run_windows(PROGRESS, W), curve_mod.read_reference(out, W)
     lines = curve_mod.table(windows, reference, W).splitlines()
     assert lines[0] == "| " + " | ".join(curve_mod.HEADER) + " |" and len(lines) == 5
-    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 25 at 800 | 0.02 |"
-    assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 |  | 0.05 |"
-    assert lines[4] == "| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 50 at 2,200 | 0.06 |"
+    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 30.0 / 30.0 / 10.0 | 25 at 800 | 0.02 |"
+    assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 | n/a / n/a / n/a |  | 0.05 |"
+    assert lines[4] == "| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 25.0 / 0.0 / 25.0 | 50 at 2,200 | 0.06 |"
     # with the run's validation episodes known, each reading gets its 95 % Wilson interval
     lines = curve_mod.table(windows, reference, W, val_episodes=100).splitlines()
     assert lines[2].endswith("| 25 [18, 34] at 800 | 0.02 |") and lines[4].endswith("| 50 [40, 60] at 2,200 | 0.06 |")
