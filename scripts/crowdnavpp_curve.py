@@ -11,11 +11,14 @@ reference's reward curve ``docs/data/crowdnavpp_reference_reward.csv``, and writ
   for the run and for the reference's two logged trainings; below it the run's validation
   success (every validation, with its 95 % Wilson interval when known, as in the table) and
   training success (per window); at the bottom how its training episodes failed (per window:
-  human collision, wall collision, timeout), which tells a dip's cause;
+  human collision, wall collision, timeout), which tells a dip's cause; and the policy's standard
+  deviation against the reference's (PPO's own dynamics: no entropy bonus, so only the updates
+  move it);
 * a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
   reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
-  run's training success and failures (human / wall / timeout), the latest validation success in
-  the window (with its 95 % Wilson
+  run's training success and failures (human / wall / timeout), the policy's standard deviation
+  (the run's, the reference's rand / non-rand), the latest validation success in the window (with
+  its 95 % Wilson
   interval over the run's ``val.n_episodes``, read from its last checkpoint's
   ``train_ppo_config.json``), and the run's cumulative training wall time (``time/wall_s``) at the
   window's last iteration.
@@ -26,14 +29,18 @@ training reward and outcome rates of a window are episode-weighted: the sum over
 ``train/episode_return x train/episodes`` (resp. ``train/<outcome>_rate x train/episodes``) over
 the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window
 (an outcome a log does not report reads n/a).
-The reference's value is the plain mean of ``eprewmean`` over the log lines in the window
-(``eprewmean`` being the reference's mean return of its last 100 training episodes). A window the
-run has not finished is marked "(so far)" in the table and drawn hollow.
+The reference's values are plain means over the log lines in the window: of ``eprewmean`` (its
+mean return of its last 100 training episodes) and of ``loss/policy_entropy`` (the Gaussian's
+entropy per action dimension). The policy's standard deviation is the geometric mean over the two
+action dimensions, ``exp(H - ln(2 pi e) / 2)`` for an entropy H per dimension: the run's from the
+plain mean of its ``entropy`` (summed over the two dimensions) over the window's iterations. A
+window the run has not finished is marked "(so far)" in the table and drawn hollow.
 
 The reference CSV (columns ``env_steps`` = window centre, ``eprewmean_rand``,
-``eprewmean_non_rand``) is this reduction of ``trained_models/GST_predictor_rand/progress.csv``
-and ``trained_models/GST_predictor_non_rand/progress.csv`` of Shuijing725/CrowdNav_Prediction_AttnGraph
-(columns ``misc/nupdates``, ``misc/total_timesteps``, ``eprewmean``, ...): given
+``eprewmean_non_rand``, ``entropy_rand``, ``entropy_non_rand``) is this reduction of
+``trained_models/GST_predictor_rand/progress.csv`` and
+``trained_models/GST_predictor_non_rand/progress.csv`` of Shuijing725/CrowdNav_Prediction_AttnGraph
+(columns ``misc/nupdates``, ``misc/total_timesteps``, ``eprewmean``, ``loss/policy_entropy``, ...): given
 ``--reference_rand_log`` and ``--reference_non_rand_log`` (those two files), the script writes it
 to ``--reference`` first (windows the logs cover completely; an empty cell where one log has
 ended). Without ``--run`` it stops there.
@@ -55,12 +62,17 @@ from lerobot_crowdnav.rl.run_log import read_progress
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
 DEFAULT_PNG = ROOT / "docs" / "figures" / "crowdnavpp_bounded_curve.png"
-REFERENCE_COLUMNS = ("eprewmean_rand", "eprewmean_non_rand")
+# What is reduced from the reference's logs: CSV name -> log column; each gets <name>_rand, <name>_non_rand.
+REFERENCE_LOG_COLUMNS = {"eprewmean": "eprewmean", "entropy": "loss/policy_entropy"}
+REFERENCE_COLUMNS = tuple(f"{name}_{log}" for name in REFERENCE_LOG_COLUMNS for log in ("rand", "non_rand"))
+REWARD_COLUMNS, ENTROPY_COLUMNS = REFERENCE_COLUMNS[:2], REFERENCE_COLUMNS[2:]
+ACTION_DIMS = 2  # (vx, vy): the run logs its Gaussian's entropy summed over them
 # How a training episode ends: progress.jsonl's train/<outcome>_rate.
 OUTCOMES = ("success", "human_collision", "wall_collision", "timeout")
 FAILURES = OUTCOMES[1:]
 HEADER = ["env steps (window)", "train reward", "reference reward, rand", "reference reward, non-rand",
           "train success (%)", "train human / wall collision / timeout (%)",
+          "policy std (m/s), this run / reference rand / non-rand",
           "validation success (%) [95 % CI] at env steps", "wall time (h, cumulative)"]
 
 
@@ -69,8 +81,9 @@ class CurveConfig:
     # The run's folder, holding progress.jsonl (only read). Without it, only the reference CSV is
     # (re)built, from --reference_rand_log and --reference_non_rand_log.
     run: Path | None = None
-    # The reference's reward curve: CSV with env_steps (window centre), eprewmean_rand,
-    # eprewmean_non_rand. Read for the figure and the table; written when the two logs are given.
+    # The reference's curves: CSV with env_steps (window centre), eprewmean_rand, eprewmean_non_rand,
+    # entropy_rand, entropy_non_rand. Read for the figure and the table; written when the two logs
+    # are given.
     reference: Path = REFERENCE_CSV
     # The figure to write (PNG); null to write none.
     output_png: Path | None = DEFAULT_PNG
@@ -101,6 +114,7 @@ class Window:
     episodes: int = 0  # training episodes that ended in the window
     reward: float = math.nan  # episode-weighted training return
     rates: dict[str, float] = field(default_factory=dict)  # episode-weighted rate of each of OUTCOMES
+    entropy: float = math.nan  # mean policy entropy (summed over the action dimensions) over the iterations
     val_success: float = math.nan  # latest validation success in the window
     val_step: int | None = None
     wall_s: float = math.nan  # cumulative training wall time at the window's last timed iteration
@@ -109,28 +123,31 @@ class Window:
 
 # -- the reference ------------------------------------------------------------------------------
 
-def reference_log_windows(path: Path, window: int) -> dict[int, float]:
-    """Mean ``eprewmean`` per window of one of the reference's progress.csv files, for the windows
-    the log covers completely (its last line within one logging interval of the window's end)."""
+def reference_log_windows(path: Path, window: int) -> dict[str, dict[int, float]]:
+    """``{name: {window index: mean}}`` of each of ``REFERENCE_LOG_COLUMNS`` in one of the
+    reference's progress.csv files, for the windows the log covers completely (its last line within
+    one logging interval of the window's end)."""
     with open(path, newline="") as f:
-        rows = [(int(float(r["misc/total_timesteps"])), float(r["eprewmean"])) for r in csv.DictReader(f)]
+        rows = sorted((int(float(r["misc/total_timesteps"])), [float(r[c]) for c in REFERENCE_LOG_COLUMNS.values()])
+                      for r in csv.DictReader(f))
     if len(rows) < 2:
         raise ValueError(f"{path}: fewer than two log lines")
-    rows.sort()
     interval = min(b[0] - a[0] for a, b in zip(rows, rows[1:], strict=False))
-    sums: dict[int, list[float]] = {}
-    for step, value in rows:
-        sums.setdefault(step // window, []).append(value)
-    last = rows[-1][0]
-    return {k: math.fsum(v) / len(v) for k, v in sorted(sums.items()) if last + interval >= (k + 1) * window}
+    by_k: dict[int, list[list[float]]] = {}
+    for step, values in rows:
+        by_k.setdefault(step // window, []).append(values)
+    covered = {k: v for k, v in by_k.items() if rows[-1][0] + interval >= (k + 1) * window}
+    return {name: {k: math.fsum(line[i] for line in v) / len(v) for k, v in sorted(covered.items())}
+            for i, name in enumerate(REFERENCE_LOG_COLUMNS)}
 
 
 def write_reference(rand_log: Path, non_rand_log: Path, out: Path, window: int) -> list[dict[str, str]]:
     """Reduce the reference's two logs to ``out`` (env_steps = window centre); returns its rows."""
-    curves = [reference_log_windows(rand_log, window), reference_log_windows(non_rand_log, window)]
+    logs = [reference_log_windows(rand_log, window), reference_log_windows(non_rand_log, window)]
+    curves = [log[name] for name in REFERENCE_LOG_COLUMNS for log in logs]  # in REFERENCE_COLUMNS' order
     rows = [{"env_steps": str(k * window + window // 2),
              **{c: (f"{curve[k]:.6f}" if k in curve else "") for c, curve in zip(REFERENCE_COLUMNS, curves, strict=True)}}
-            for k in sorted(set(curves[0]) | set(curves[1]))]
+            for k in sorted(set().union(*curves))]
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["env_steps", *REFERENCE_COLUMNS], lineterminator="\n")
@@ -140,7 +157,8 @@ def write_reference(rand_log: Path, non_rand_log: Path, out: Path, window: int) 
 
 
 def read_reference(path: Path, window: int) -> dict[str, dict[int, float]]:
-    """``{column: {window index: reward}}`` from the reference CSV; checks the window width."""
+    """``{column: {window index: value}}`` from the reference CSV (a column it lacks stays empty);
+    checks the window width."""
     curves: dict[str, dict[int, float]] = {c: {} for c in REFERENCE_COLUMNS}
     with open(path, newline="") as f:
         for r in csv.DictReader(f):
@@ -149,7 +167,7 @@ def read_reference(path: Path, window: int) -> dict[str, dict[int, float]]:
                 raise ValueError(f"{path}: env_steps {centre} is not the centre of a {window}-step window "
                                  "(rebuild it with the same --window)")
             for c in REFERENCE_COLUMNS:
-                if r[c] != "":
+                if r.get(c, ""):
                     curves[c][centre // window] = float(r[c])
     return curves
 
@@ -175,6 +193,9 @@ def run_windows(rows: list[dict], window: int) -> list[Window]:
             for o in OUTCOMES:
                 w.rates[o] = (math.fsum(r[f"train/{o}_rate"] * r["train/episodes"] for r in train) / w.episodes
                               if all(r.get(f"train/{o}_rate") is not None for r in train) else math.nan)
+        entropies = [r["entropy"] for r in rs if r.get("entropy") is not None]
+        if entropies:
+            w.entropy = math.fsum(entropies) / len(entropies)
         val = [r for r in rs if r.get("val/success_rate") is not None]
         if val:
             w.val_success, w.val_step = float(val[-1]["val/success_rate"]), int(val[-1]["env_steps"])
@@ -190,6 +211,11 @@ def run_windows(rows: list[dict], window: int) -> list[Window]:
 
 def _num(x: float, fmt: str) -> str:
     return "n/a" if x is None or math.isnan(x) else format(x, fmt)
+
+
+def policy_std(entropy_per_dim: float) -> float:
+    """A Gaussian's standard deviation from its entropy per dimension (geometric mean over dimensions)."""
+    return math.exp(entropy_per_dim - 0.5 * math.log(2 * math.pi * math.e))
 
 
 def _rate(w: Window, outcome: str) -> str:
@@ -219,8 +245,10 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
         end = (w.k + 1) * window if w.complete else w.last_step
         span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
         val = "" if w.val_step is None else f"{100 * w.val_success:.0f}{_interval(w.val_success, val_episodes)} at {w.val_step:,}"
-        cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REFERENCE_COLUMNS),
-                 _rate(w, "success"), " / ".join(_rate(w, o) for o in FAILURES), val, _num(w.wall_s / 3600, ".2f")]
+        stds = [policy_std(w.entropy / ACTION_DIMS), *(policy_std(reference[c].get(w.k, math.nan)) for c in ENTROPY_COLUMNS)]
+        cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REWARD_COLUMNS),
+                 _rate(w, "success"), " / ".join(_rate(w, o) for o in FAILURES), " / ".join(_num(x, ".2f") for x in stds),
+                 val, _num(w.wall_s / 3600, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -239,12 +267,13 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     done = [w for w in windows if w.complete and w.episodes]
     partial = [w for w in windows if not w.complete and w.episodes]
 
-    fig, (top, bottom, causes) = plt.subplots(3, 1, figsize=(8, 8.4), sharex=True, height_ratios=(3, 2, 2))
-    for c, label, colour in ((REFERENCE_COLUMNS[0], "reference (GST_predictor_rand)", "tab:gray"),
-                             (REFERENCE_COLUMNS[1], "reference (GST_predictor_non_rand)", "black")):
-        ks = [k for k in sorted(reference[c]) if k * window < x_max]
-        top.plot([(k + 0.5) * window for k in ks], [reference[c][k] for k in ks], "-", color=colour, lw=1.2,
-                 label=label)
+    fig, (top, bottom, causes, spread) = plt.subplots(4, 1, figsize=(8, 10.4), sharex=True, height_ratios=(3, 2, 2, 2))
+    for columns, label, colour in ((REFERENCE_COLUMNS[::2], "reference (GST_predictor_rand)", "tab:gray"),
+                                   (REFERENCE_COLUMNS[1::2], "reference (GST_predictor_non_rand)", "black")):
+        for ax, c, f in ((top, columns[0], float), (spread, columns[1], policy_std)):
+            ks = [k for k in sorted(reference[c]) if k * window < x_max]
+            ax.plot([(k + 0.5) * window for k in ks], [f(reference[c][k]) for k in ks], "-", color=colour, lw=1.2,
+                    label=label)
     top.plot([centre[w.k] for w in done], [w.reward for w in done], "o-", color="tab:blue", label="this run")
     if partial:
         top.plot([centre[w.k] for w in partial], [w.reward for w in partial], "o", mfc="none", color="tab:blue",
@@ -261,6 +290,9 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
                [100 * hi - y for y, (_, hi) in zip(ys, bounds, strict=True)]]
     bottom.errorbar([s for s, _ in val], ys, yerr=err if val_episodes else None, fmt="s-", color="tab:green",
                     capsize=2, label="validation success" + (f" ({val_episodes} episodes, 95 % CI)" if val_episodes else ""))
+    for ws, style, mfc in ((done, "o-", None), (partial, "o", "none")):
+        spread.plot([centre[w.k] for w in ws], [policy_std(w.entropy / ACTION_DIMS) for w in ws], style, mfc=mfc,
+                    color="tab:blue", label="this run" if mfc is None else None)
     for ax, outcome, colour, label in ((bottom, "success", "tab:orange", "training success (per window)"),
                                        (causes, "human_collision", "tab:red", "human collision"),
                                        (causes, "wall_collision", "tab:brown", "wall collision"),
@@ -271,13 +303,14 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
                     color=colour)
     bottom.set_ylabel("this run: success (%)")
     causes.set_ylabel("this run: training\nepisodes ending in (%)")
-    causes.set_xlabel("env steps")
-    for ax in (bottom, causes):
+    spread.set_ylabel("policy std (m/s)\n(geometric mean of vx, vy)")
+    spread.set_xlabel("env steps")
+    for ax in (bottom, causes, spread):
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="upper left" if ax is bottom else "upper right")
-    causes.set_xlim(0, x_max)
-    causes.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1e6:g} M" if x else "0"))
+        ax.legend(fontsize=8, loc="upper left" if ax is bottom else ("upper right" if ax is causes else "lower left"))
+    spread.set_xlim(0, x_max)
+    spread.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1e6:g} M" if x else "0"))
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

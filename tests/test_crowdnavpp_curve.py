@@ -21,6 +21,7 @@ curve_mod = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # da
 spec.loader.exec_module(curve_mod)
 
 W = 1000  # window width of the synthetic data
+ENTROPY_STD_1 = 0.5 * math.log(2 * math.pi * math.e)  # a Gaussian's entropy per dimension at std 1
 
 
 def it(step, episodes, ret=None, sr=None, fail=None, **extra):
@@ -39,17 +40,21 @@ def it(step, episodes, ret=None, sr=None, fail=None, **extra):
 # Window 1 [1000, 2000): no validation. Window 2 [2000, 3000): reached up to 2200 only (so far).
 PROGRESS = [
     {"iteration": 0, "env_steps": 0, "val/success_rate": 0.0, "val/episode_return": -20.0},
-    it(200, 2, -10.0, 0.0, (0.5, 0.5, 0.0)), it(400, 0), it(600, 3, -5.0, 1 / 3, (1 / 3, 1 / 3, 0.0)),
-    it(800, 5, 1.0, 0.4, (0.2, 0.2, 0.2), **{"val/success_rate": 0.25}),
+    it(200, 2, -10.0, 0.0, (0.5, 0.5, 0.0), entropy=2 * ENTROPY_STD_1), it(400, 0),
+    it(600, 3, -5.0, 1 / 3, (1 / 3, 1 / 3, 0.0)),
+    it(800, 5, 1.0, 0.4, (0.2, 0.2, 0.2), entropy=2 * ENTROPY_STD_1 - 2, **{"val/success_rate": 0.25}),
     it(1000, 4, 2.0, 0.5), it(1200, 4, 4.0, 0.25, (0.5, 0.25, 0.0)), it(1400, 2, -1.0, 0.0, (1.0, 0.0, 0.0)),
     it(1600, 0), it(1800, 10, 3.0, 0.6, (0.2, 0.1, 0.1)),
-    it(2000, 1, 7.0, 1.0, (0.0, 0.0, 0.0)), it(2200, 3, 3.0, 1 / 3, (1 / 3, 0.0, 1 / 3), **{"val/success_rate": 0.5}),
+    it(2000, 1, 7.0, 1.0, (0.0, 0.0, 0.0)),
+    it(2200, 3, 3.0, 1 / 3, (1 / 3, 0.0, 1 / 3), entropy=2 * ENTROPY_STD_1, **{"val/success_rate": 0.5}),
 ]
 # Episode-weighted by hand: window 0 (2 * -10 + 3 * -5 + 5 * 1) / 10 = -3.0, success (0 + 1 + 2) / 10,
 # human collisions, wall collisions, timeouts (1 + 1 + 1) / 10, (1 + 1 + 1) / 10, (0 + 0 + 1) / 10;
 # window 1 (8 + 16 - 2 + 30) / 20 = 2.6 and (2 + 1 + 0 + 6) / 20, its failures unknown (the line at
 # 1000 does not report them); window 2 (7 + 9) / 4 = 4.0, 2 / 4, failures 1 / 4, 0, 1 / 4.
-# (A plain mean over iterations would give -4.67, 2.0 and 5.0 instead.)
+# (A plain mean over iterations would give -4.67, 2.0 and 5.0 instead.) The policy's entropy (summed
+# over vx, vy) is a plain mean over the iterations that log it: window 0 2 E - 1 (std e^-1/2 = 0.61),
+# window 1 none, window 2 2 E (std 1), E being the entropy per dimension at std 1.
 NAN3 = (math.nan,) * 3
 EXPECTED = [  # k, reward, success, (human, wall, timeout), val success, val step, wall_s, complete
     (0, -3.0, 0.3, (0.3, 0.3, 0.1), 0.25, 800, 80.0, True),
@@ -65,12 +70,13 @@ def write_progress(folder: Path, rows=PROGRESS) -> Path:
 
 
 def write_log(path: Path, points: list[tuple[int, float]]) -> Path:
-    """A reference-format progress.csv (columns as the reference's train.py writes them)."""
+    """A reference-format progress.csv (columns as the reference's train.py writes them); the
+    entropy is the reward / 10 + 1.4193 (std 1 m/s at a reward of 0)."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["misc/nupdates", "misc/total_timesteps", "fps", "eprewmean", "loss/policy_entropy"])
         for i, (t, v) in enumerate(points):
-            w.writerow([20 * (i + 1), t, 200, v, 1.4])
+            w.writerow([20 * (i + 1), t, 200, v, v / 10 + ENTROPY_STD_1])
     return path
 
 
@@ -91,27 +97,35 @@ def test_run_windows_are_episode_weighted_with_latest_validation_and_wall_time()
         assert (math.isnan(w.val_success) and math.isnan(val)) or w.val_success == val
         assert w.wall_s == wall
     assert [w.episodes for w in windows] == [10, 20, 4]
+    assert [w.entropy for w in windows] == pytest.approx([2 * ENTROPY_STD_1 - 1, math.nan, 2 * ENTROPY_STD_1],
+                                                         abs=1e-12, nan_ok=True)
 
 
 def test_reference_logs_reduce_to_exact_window_means(tmp_path):
     rand = curve_mod.reference_log_windows(write_log(tmp_path / "rand.csv", RAND), W)
-    assert rand == {0: pytest.approx(-5.0, abs=1e-12), 1: pytest.approx(4.0, abs=1e-12)}
+    assert rand == {"eprewmean": {0: pytest.approx(-5.0, abs=1e-12), 1: pytest.approx(4.0, abs=1e-12)},
+                    "entropy": {0: pytest.approx(ENTROPY_STD_1 - 0.5, abs=1e-12),
+                                1: pytest.approx(ENTROPY_STD_1 + 0.4, abs=1e-12)}}
     out = tmp_path / "ref.csv"
     rows = curve_mod.write_reference(tmp_path / "rand.csv", write_log(tmp_path / "non.csv", NON_RAND), out, W)
-    assert out.read_text() == ("env_steps,eprewmean_rand,eprewmean_non_rand\n"
-                               "500,-5.000000,-2.166667\n"
-                               "1500,4.000000,\n")
+    assert out.read_text() == ("env_steps,eprewmean_rand,eprewmean_non_rand,entropy_rand,entropy_non_rand\n"
+                               "500,-5.000000,-2.166667,0.918939,1.202272\n"
+                               "1500,4.000000,,1.818939,\n")
     assert len(rows) == 2
     ref = curve_mod.read_reference(out, W)
-    assert ref == {"eprewmean_rand": {0: -5.0, 1: 4.0}, "eprewmean_non_rand": {0: -2.166667}}
+    assert ref == {"eprewmean_rand": {0: -5.0, 1: 4.0}, "eprewmean_non_rand": {0: -2.166667},
+                   "entropy_rand": {0: 0.918939, 1: 1.818939}, "entropy_non_rand": {0: 1.202272}}
+    # an entropy of ln(2 pi e) / 2 per dimension is a std of 1; each nat more multiplies it by e
+    assert curve_mod.policy_std(ENTROPY_STD_1) == pytest.approx(1.0, abs=1e-12)
+    assert curve_mod.policy_std(ENTROPY_STD_1 - 0.5) == pytest.approx(math.exp(-0.5), abs=1e-12)
     with pytest.raises(ValueError, match="centre"):
         curve_mod.read_reference(out, 400)
 
 
 def test_committed_reference_csv_is_the_reduction_of_the_reference_logs():
-    """80 windows of 0.25 M env steps, both curves to 20 M (where the reference's logs end); its
-    first window recomputed from the reference's first 25 log lines (total_timesteps 10,080 to
-    240,480, every 20 updates of 16 x 30 steps), copied here from the two progress.csv files."""
+    """80 windows of 0.25 M env steps, the four curves to 20 M (where the reference's logs end);
+    their first window recomputed from the reference's first 25 log lines (total_timesteps 10,080
+    to 240,480, every 20 updates of 16 x 30 steps), copied here from the two progress.csv files."""
     with open(curve_mod.REFERENCE_CSV, newline="") as f:
         rows = list(csv.DictReader(f))
     assert [int(r["env_steps"]) for r in rows] == [125_000 + 250_000 * k for k in range(80)]
@@ -126,11 +140,28 @@ def test_committed_reference_csv_is_the_reduction_of_the_reference_logs():
                       -15.86032219, -14.67720427, -16.57059128, -14.19925753, -16.85316213, -15.94426089,
                       -14.0578362, -13.9835012, -13.09644294, -14.19374541, -12.93764942, -12.69022262,
                       -13.20982481]
-    assert values["eprewmean_rand"][0] == pytest.approx(math.fsum(first_rand) / 25, abs=5e-7)
-    assert values["eprewmean_non_rand"][0] == pytest.approx(math.fsum(first_non_rand) / 25, abs=5e-7)
-    # Both reference trainings learn: the last 2 M env steps average well above the first 2 M.
-    for vs in values.values():
-        assert sum(vs[-8:]) / 8 > sum(vs[:8]) / 8 + 20
+    entropy_rand = [1.4193906426429748, 1.4202398538589478, 1.4201084852218628, 1.4198580265045166,
+                    1.419650101661682, 1.4192113399505615, 1.4187208890914917, 1.4182256579399108,
+                    1.4182194709777831, 1.4181082248687744, 1.4178841710090637, 1.4177842497825623,
+                    1.4177506685256958, 1.4174901127815247, 1.4176611065864564, 1.417246150970459,
+                    1.416961920261383, 1.4167022824287414, 1.4170844793319701, 1.4169718742370605,
+                    1.4164634466171264, 1.4155369639396667, 1.415892243385315, 1.4158755540847778, 1.4162428259849549]
+    entropy_non_rand = [1.4189715027809142, 1.4189993023872376, 1.418747067451477, 1.4185497403144836,
+                        1.417847502231598, 1.4172162532806396, 1.417325234413147, 1.417020332813263,
+                        1.4164602756500244, 1.416001808643341, 1.415651762485504, 1.4153205275535583,
+                        1.4146570563316345, 1.4140007138252257, 1.4138383984565734, 1.4133376240730287,
+                        1.4117445826530457, 1.4115410685539245, 1.41027991771698, 1.4100423216819764,
+                        1.4095882058143616, 1.4100745439529419, 1.4098980665206908, 1.408864390850067, 1.4089937567710877]
+    for column, first in (("eprewmean_rand", first_rand), ("eprewmean_non_rand", first_non_rand),
+                          ("entropy_rand", entropy_rand), ("entropy_non_rand", entropy_non_rand)):
+        assert values[column][0] == pytest.approx(math.fsum(first) / 25, abs=5e-7), column
+    # Both reference trainings learn: the last 2 M env steps average well above the first 2 M; their
+    # policies start at std 1 m/s (log-std 0) and narrow, the non-randomized one most.
+    for c in curve_mod.REWARD_COLUMNS:
+        assert sum(values[c][-8:]) / 8 > sum(values[c][:8]) / 8 + 20
+    stds = {c: [curve_mod.policy_std(h) for h in values[c]] for c in curve_mod.ENTROPY_COLUMNS}
+    assert all(0.99 < vs[0] <= 1.0 and vs[-1] < vs[0] for vs in stds.values())
+    assert stds["entropy_non_rand"][-1] < 0.4 < 0.8 < stds["entropy_rand"][-1]
 
 
 def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
@@ -139,9 +170,11 @@ def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
     windows, reference = curve_mod.run_windows(PROGRESS, W), curve_mod.read_reference(out, W)
     lines = curve_mod.table(windows, reference, W).splitlines()
     assert lines[0] == "| " + " | ".join(curve_mod.HEADER) + " |" and len(lines) == 5
-    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 30.0 / 30.0 / 10.0 | 25 at 800 | 0.02 |"
-    assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 | n/a / n/a / n/a |  | 0.05 |"
-    assert lines[4] == "| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 25.0 / 0.0 / 25.0 | 50 at 2,200 | 0.06 |"
+    # the reference's entropies are E + reward / 10 per line: window 0 E - 0.5 (rand), E - 0.217 (non-rand)
+    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 30.0 / 30.0 / 10.0 | 0.61 / 0.61 / 0.81 | 25 at 800 | 0.02 |"
+    assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 | n/a / n/a / n/a | n/a / 1.49 / n/a |  | 0.05 |"
+    assert lines[4] == ("| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 25.0 / 0.0 / 25.0 | 1.00 / n/a / n/a "
+                        "| 50 at 2,200 | 0.06 |")
     # with the run's validation episodes known, each reading gets its 95 % Wilson interval
     lines = curve_mod.table(windows, reference, W, val_episodes=100).splitlines()
     assert lines[2].endswith("| 25 [18, 34] at 800 | 0.02 |") and lines[4].endswith("| 50 [40, 60] at 2,200 | 0.06 |")
