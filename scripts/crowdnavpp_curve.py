@@ -5,7 +5,7 @@ at the same env steps (docs/crowdnavpp.md prints its output).
 
 reads the run's ``progress.jsonl`` (one line per PPO iteration, written by
 ``lerobot-crowdnav-train-ppo``; the run may still be going: the file is only read) and the
-reference's reward curve ``docs/data/crowdnavpp_reference_reward.csv``, and writes
+reference's reward and entropy curves ``docs/data/crowdnavpp_reference_curves.csv``, and writes
 
 * a PNG (``--output_png``): the mean training episode reward per window of ``--window`` env steps
   for the run and for the reference's two logged trainings; below it the run's validation
@@ -60,7 +60,7 @@ from lerobot_crowdnav.measure.metrics import rate_interval
 from lerobot_crowdnav.rl.run_log import read_progress
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_reward.csv"
+REFERENCE_CSV = ROOT / "docs" / "data" / "crowdnavpp_reference_curves.csv"
 DEFAULT_PNG = ROOT / "docs" / "figures" / "crowdnavpp_bounded_curve.png"
 # What is reduced from the reference's logs: CSV name -> log column; each gets <name>_rand, <name>_non_rand.
 REFERENCE_LOG_COLUMNS = {"eprewmean": "eprewmean", "entropy": "loss/policy_entropy"}
