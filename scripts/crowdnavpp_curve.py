@@ -18,8 +18,7 @@ reference's reward and entropy curves ``docs/data/crowdnavpp_reference_curves.cs
   reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
   run's training success and failures (human / wall / timeout), the policy's standard deviation
   (the run's, the reference's rand / non-rand), the latest validation success in the window (with
-  its 95 % Wilson
-  interval over the run's ``val.n_episodes``, read from its last checkpoint's
+  its 95 % Wilson interval over the run's ``val.n_episodes``, read from its last checkpoint's
   ``train_ppo_config.json``), and the run's cumulative training wall time (``time/wall_s``) at the
   window's last iteration.
 
@@ -119,6 +118,11 @@ class Window:
     val_step: int | None = None
     wall_s: float = math.nan  # cumulative training wall time at the window's last timed iteration
     complete: bool = True
+
+    @property
+    def std(self) -> float:
+        """The policy's standard deviation in the window (geometric mean over the action dimensions)."""
+        return policy_std(self.entropy / ACTION_DIMS)
 
 
 # -- the reference ------------------------------------------------------------------------------
@@ -245,7 +249,7 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
         end = (w.k + 1) * window if w.complete else w.last_step
         span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
         val = "" if w.val_step is None else f"{100 * w.val_success:.0f}{_interval(w.val_success, val_episodes)} at {w.val_step:,}"
-        stds = [policy_std(w.entropy / ACTION_DIMS), *(policy_std(reference[c].get(w.k, math.nan)) for c in ENTROPY_COLUMNS)]
+        stds = [w.std, *(policy_std(reference[c].get(w.k, math.nan)) for c in ENTROPY_COLUMNS)]
         cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REWARD_COLUMNS),
                  _rate(w, "success"), " / ".join(_rate(w, o) for o in FAILURES), " / ".join(_num(x, ".2f") for x in stds),
                  val, _num(w.wall_s / 3600, ".2f")]
@@ -268,9 +272,9 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     partial = [w for w in windows if not w.complete and w.episodes]
 
     fig, (top, bottom, causes, spread) = plt.subplots(4, 1, figsize=(8, 10.4), sharex=True, height_ratios=(3, 2, 2, 2))
-    for columns, label, colour in ((REFERENCE_COLUMNS[::2], "reference (GST_predictor_rand)", "tab:gray"),
-                                   (REFERENCE_COLUMNS[1::2], "reference (GST_predictor_non_rand)", "black")):
-        for ax, c, f in ((top, columns[0], float), (spread, columns[1], policy_std)):
+    for reward_c, entropy_c, label, colour in zip(REWARD_COLUMNS, ENTROPY_COLUMNS, ("reference (GST_predictor_rand)",
+                                                  "reference (GST_predictor_non_rand)"), ("tab:gray", "black"), strict=True):
+        for ax, c, f in ((top, reward_c, float), (spread, entropy_c, policy_std)):
             ks = [k for k in sorted(reference[c]) if k * window < x_max]
             ax.plot([(k + 0.5) * window for k in ks], [f(reference[c][k]) for k in ks], "-", color=colour, lw=1.2,
                     label=label)
@@ -291,7 +295,7 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     bottom.errorbar([s for s, _ in val], ys, yerr=err if val_episodes else None, fmt="s-", color="tab:green",
                     capsize=2, label="validation success" + (f" ({val_episodes} episodes, 95 % CI)" if val_episodes else ""))
     for ws, style, mfc in ((done, "o-", None), (partial, "o", "none")):
-        spread.plot([centre[w.k] for w in ws], [policy_std(w.entropy / ACTION_DIMS) for w in ws], style, mfc=mfc,
+        spread.plot([centre[w.k] for w in ws], [w.std for w in ws], style, mfc=mfc,
                     color="tab:blue", label="this run" if mfc is None else None)
     for ax, outcome, colour, label in ((bottom, "success", "tab:orange", "training success (per window)"),
                                        (causes, "human_collision", "tab:red", "human collision"),
