@@ -8,14 +8,17 @@ reads the run's ``progress.jsonl`` (one line per PPO iteration, written by
 reference's reward and entropy curves ``docs/data/crowdnavpp_reference_curves.csv``, and writes
 
 * a PNG (``--output_png``): the mean training episode reward per window of ``--window`` env steps
-  for the run and for the reference's two logged trainings; below it the run's validation
+  for the run (with and, where logged, without its prediction penalty) and for the reference's
+  two logged trainings; below it the run's validation
   success (every validation, with its 95 % Wilson interval when known, as in the table) and
   training success (per window); at the bottom how its training episodes failed (per window:
   human collision, wall collision, timeout), which tells a dip's cause; and the policy's standard
   deviation against the reference's (PPO's own dynamics: no entropy bonus, so only the updates
   move it);
 * a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
-  reached: env steps, the run's training reward, the reference's reward (rand / non-rand), the
+  reached: env steps, the run's training reward, the same without its prediction-penalty part
+  (what the reference's log reports, where the run logs that part), the reference's reward
+  (rand / non-rand), the
   run's training success and failures (human / wall / timeout), the policy's standard deviation
   (the run's, the reference's rand / non-rand), the latest validation success in the window (with
   its 95 % Wilson interval over the run's ``val.n_episodes``, read from its last checkpoint's
@@ -27,7 +30,11 @@ belonging to the window of the env-step count it reports (the count at its end).
 training reward and outcome rates of a window are episode-weighted: the sum over its iterations of
 ``train/episode_return x train/episodes`` (resp. ``train/<outcome>_rate x train/episodes``) over
 the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window
-(an outcome a log does not report reads n/a).
+(an outcome a log does not report reads n/a); the reward without the prediction penalty likewise
+from ``train/episode_return - train/prediction_penalty``, over the iterations that log the
+penalty. The reference's ``eprewmean`` leaves its predictor's penalty out: its training script
+averages the returns of its per-env episode monitors, and the penalty is added to the rewards
+outside them (by the vectorized wrapper that runs its GST predictor).
 The reference's values are plain means over the log lines in the window: of ``eprewmean`` (its
 mean return of its last 100 training episodes) and of ``loss/policy_entropy`` (the Gaussian's
 entropy per action dimension). The policy's standard deviation is the geometric mean over the two
@@ -69,7 +76,8 @@ ACTION_DIMS = 2  # (vx, vy): the run logs its Gaussian's entropy summed over the
 # How a training episode ends: progress.jsonl's train/<outcome>_rate.
 OUTCOMES = ("success", "human_collision", "wall_collision", "timeout")
 FAILURES = OUTCOMES[1:]
-HEADER = ["env steps (window)", "train reward", "reference reward, rand", "reference reward, non-rand",
+HEADER = ["env steps (window)", "train reward", "train reward without prediction penalty",
+          "reference reward, rand", "reference reward, non-rand",
           "train success (%)", "train human / wall collision / timeout (%)",
           "policy std (m/s), this run / reference rand / non-rand",
           "validation success (%) [95 % CI] at env steps", "wall time (h, cumulative)"]
@@ -112,6 +120,9 @@ class Window:
     last_step: int
     episodes: int = 0  # training episodes that ended in the window
     reward: float = math.nan  # episode-weighted training return
+    # The same without its prediction-penalty part, over the iterations that log that part: what the
+    # reference's log reports (its predictor's penalty is added outside its episode monitor).
+    reward_without_penalty: float = math.nan
     rates: dict[str, float] = field(default_factory=dict)  # episode-weighted rate of each of OUTCOMES
     entropy: float = math.nan  # mean policy entropy (summed over the action dimensions) over the iterations
     val_success: float = math.nan  # latest validation success in the window
@@ -194,6 +205,11 @@ def run_windows(rows: list[dict], window: int) -> list[Window]:
         w.episodes = sum(int(r["train/episodes"]) for r in train)
         if w.episodes:
             w.reward = math.fsum(r["train/episode_return"] * r["train/episodes"] for r in train) / w.episodes
+            split = [r for r in train if r.get("train/prediction_penalty") is not None]
+            if split:
+                w.reward_without_penalty = math.fsum(
+                    (r["train/episode_return"] - r["train/prediction_penalty"]) * r["train/episodes"] for r in split
+                ) / sum(int(r["train/episodes"]) for r in split)
             for o in OUTCOMES:
                 w.rates[o] = (math.fsum(r[f"train/{o}_rate"] * r["train/episodes"] for r in train) / w.episodes
                               if all(r.get(f"train/{o}_rate") is not None for r in train) else math.nan)
@@ -250,7 +266,7 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
         span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
         val = "" if w.val_step is None else f"{100 * w.val_success:.0f}{_interval(w.val_success, val_episodes)} at {w.val_step:,}"
         stds = [w.std, *(policy_std(reference[c].get(w.k, math.nan)) for c in ENTROPY_COLUMNS)]
-        cells = [span, _num(w.reward, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REWARD_COLUMNS),
+        cells = [span, _num(w.reward, ".2f"), _num(w.reward_without_penalty, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REWARD_COLUMNS),
                  _rate(w, "success"), " / ".join(_rate(w, o) for o in FAILURES), " / ".join(_num(x, ".2f") for x in stds),
                  val, _num(w.wall_s / 3600, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
@@ -282,6 +298,10 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
     if partial:
         top.plot([centre[w.k] for w in partial], [w.reward for w in partial], "o", mfc="none", color="tab:blue",
                  label="this run, window so far")
+    split = [w for w in done + partial if not math.isnan(w.reward_without_penalty)]
+    if split:
+        top.plot([centre[w.k] for w in split], [w.reward_without_penalty for w in split], "s--", color="tab:cyan",
+                 label="this run without prediction penalty (as the reference logs)")
     top.set_ylabel(f"training episode reward\n(mean per {window / 1e6:g} M env steps)")
     top.grid(alpha=0.3)
     top.legend(fontsize=8, loc="lower right")

@@ -31,6 +31,7 @@ DRACCUS = {
     "lerobot_crowdnav.data.dagger": ("--round=abc", "round"),
     "lerobot_crowdnav.data.hub": ("--overwrite=maybe", "overwrite"),
     "scripts/crowdnavpp_curve.py": ("--window=abc", "window"),
+    "scripts/crowdnavpp_reward_terms.py": ("--episodes=abc", "episodes"),
     "scripts/probe_exploration.py": ("--episodes=abc", "episodes"),
     "scripts/probe_sensitivity.py": ("--every=x", "every"),
     "datasets_scripts/collect_orca.py": ("--episodes=1x", "episodes"),

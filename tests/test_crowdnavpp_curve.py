@@ -43,10 +43,12 @@ PROGRESS = [
     it(200, 2, -10.0, 0.0, (0.5, 0.5, 0.0), entropy=2 * ENTROPY_STD_1), it(400, 0),
     it(600, 3, -5.0, 1 / 3, (1 / 3, 1 / 3, 0.0)),
     it(800, 5, 1.0, 0.4, (0.2, 0.2, 0.2), entropy=2 * ENTROPY_STD_1 - 2, **{"val/success_rate": 0.25}),
-    it(1000, 4, 2.0, 0.5), it(1200, 4, 4.0, 0.25, (0.5, 0.25, 0.0)), it(1400, 2, -1.0, 0.0, (1.0, 0.0, 0.0)),
-    it(1600, 0), it(1800, 10, 3.0, 0.6, (0.2, 0.1, 0.1)),
-    it(2000, 1, 7.0, 1.0, (0.0, 0.0, 0.0)),
-    it(2200, 3, 3.0, 1 / 3, (1 / 3, 0.0, 1 / 3), entropy=2 * ENTROPY_STD_1, **{"val/success_rate": 0.5}),
+    it(1000, 4, 2.0, 0.5), it(1200, 4, 4.0, 0.25, (0.5, 0.25, 0.0), **{"train/prediction_penalty": -1.0}),
+    it(1400, 2, -1.0, 0.0, (1.0, 0.0, 0.0)),
+    it(1600, 0), it(1800, 10, 3.0, 0.6, (0.2, 0.1, 0.1), **{"train/prediction_penalty": -2.0}),
+    it(2000, 1, 7.0, 1.0, (0.0, 0.0, 0.0), **{"train/prediction_penalty": -3.0}),
+    it(2200, 3, 3.0, 1 / 3, (1 / 3, 0.0, 1 / 3), entropy=2 * ENTROPY_STD_1,
+       **{"val/success_rate": 0.5, "train/prediction_penalty": 0.0}),
 ]
 # Episode-weighted by hand: window 0 (2 * -10 + 3 * -5 + 5 * 1) / 10 = -3.0, success (0 + 1 + 2) / 10,
 # human collisions, wall collisions, timeouts (1 + 1 + 1) / 10, (1 + 1 + 1) / 10, (0 + 0 + 1) / 10;
@@ -54,7 +56,9 @@ PROGRESS = [
 # 1000 does not report them); window 2 (7 + 9) / 4 = 4.0, 2 / 4, failures 1 / 4, 0, 1 / 4.
 # (A plain mean over iterations would give -4.67, 2.0 and 5.0 instead.) The policy's entropy (summed
 # over vx, vy) is a plain mean over the iterations that log it: window 0 2 E - 1 (std e^-1/2 = 0.61),
-# window 1 none, window 2 2 E (std 1), E being the entropy per dimension at std 1.
+# window 1 none, window 2 2 E (std 1), E being the entropy per dimension at std 1. The reward without
+# the prediction penalty, over the iterations that log it: window 0 none, window 1 (4 * (4 + 1) +
+# 10 * (3 + 2)) / 14 = 5.0, window 2 (1 * (7 + 3) + 3 * 3) / 4 = 4.75.
 NAN3 = (math.nan,) * 3
 EXPECTED = [  # k, reward, success, (human, wall, timeout), val success, val step, wall_s, complete
     (0, -3.0, 0.3, (0.3, 0.3, 0.1), 0.25, 800, 80.0, True),
@@ -97,6 +101,7 @@ def test_run_windows_are_episode_weighted_with_latest_validation_and_wall_time()
         assert (math.isnan(w.val_success) and math.isnan(val)) or w.val_success == val
         assert w.wall_s == wall
     assert [w.episodes for w in windows] == [10, 20, 4]
+    assert [w.reward_without_penalty for w in windows] == pytest.approx([math.nan, 5.0, 4.75], abs=1e-12, nan_ok=True)
     assert [w.entropy for w in windows] == pytest.approx([2 * ENTROPY_STD_1 - 1, math.nan, 2 * ENTROPY_STD_1],
                                                          abs=1e-12, nan_ok=True)
 
@@ -171,9 +176,9 @@ def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
     lines = curve_mod.table(windows, reference, W).splitlines()
     assert lines[0] == "| " + " | ".join(curve_mod.HEADER) + " |" and len(lines) == 5
     # the reference's entropies are E + reward / 10 per line: window 0 E - 0.5 (rand), E - 0.217 (non-rand)
-    assert lines[2] == "| 0-1,000 | -3.00 | -5.00 | -2.17 | 30.0 | 30.0 / 30.0 / 10.0 | 0.61 / 0.61 / 0.81 | 25 at 800 | 0.02 |"
-    assert lines[3] == "| 1,000-2,000 | 2.60 | 4.00 | n/a | 45.0 | n/a / n/a / n/a | n/a / 1.49 / n/a |  | 0.05 |"
-    assert lines[4] == ("| 2,000-2,200 (so far) | 4.00 | n/a | n/a | 50.0 | 25.0 / 0.0 / 25.0 | 1.00 / n/a / n/a "
+    assert lines[2] == "| 0-1,000 | -3.00 | n/a | -5.00 | -2.17 | 30.0 | 30.0 / 30.0 / 10.0 | 0.61 / 0.61 / 0.81 | 25 at 800 | 0.02 |"
+    assert lines[3] == "| 1,000-2,000 | 2.60 | 5.00 | 4.00 | n/a | 45.0 | n/a / n/a / n/a | n/a / 1.49 / n/a |  | 0.05 |"
+    assert lines[4] == ("| 2,000-2,200 (so far) | 4.00 | 4.75 | n/a | n/a | 50.0 | 25.0 / 0.0 / 25.0 | 1.00 / n/a / n/a "
                         "| 50 at 2,200 | 0.06 |")
     # with the run's validation episodes known, each reading gets its 95 % Wilson interval
     lines = curve_mod.table(windows, reference, W, val_episodes=100).splitlines()

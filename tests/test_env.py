@@ -207,9 +207,10 @@ def test_prediction_penalty_takes_the_worst_step(k, penalty):
     sim.human_vel[0, 1] = [0.0, 4.0 / (5 * 0.25)]
     sim.observe()
     sim.observe()  # the velocity becomes "last observed"
-    reward, event, _ = step_once(sim)
+    reward, event, res = step_once(sim)
     assert event == RUNNING
     assert reward == pytest.approx(penalty)
+    assert res.prediction_penalty[0] == pytest.approx(penalty)  # the reward's penalty part, apart
 
 
 def test_termination_at_step_197_and_time_limit():
@@ -267,6 +268,34 @@ def test_episode_record_path_length_excludes_jump_to_next_episode_and_goal_is_th
     for _, from_positions, reported, jump in done_records:
         assert reported == pytest.approx(from_positions, abs=1e-4)  # float32 observations
         assert jump > 0.5  # the next episode's start is elsewhere, and it was not added
+
+
+def test_prediction_penalty_is_reported_per_step_and_summed_per_episode():
+    """The step info's penalty is exactly what the reward loses against a twin env whose penalty
+    never fires (same seeds and actions, so the same episodes); an episode's record sums it; a
+    state saved before the sum existed resumes with it at zero."""
+    def make(**kw):
+        return CrowdNavVectorEnv(4, task="CrowdNav-v0", preset="crowdnavpp", robot_policy="straight", **kw)
+    env, twin = make(), make(prediction_radius=-0.3)  # robot radius 0.3: centres closer than 0
+    env.reset(seed=7)
+    twin.reset(seed=7)
+    summed, ended = np.zeros(4), []
+    while len(ended) < 6:
+        _, reward, term, trunc, info = env.step(None)
+        _, twin_reward, _, _, twin_info = twin.step(None)
+        np.testing.assert_allclose(info["prediction_penalty"], reward - twin_reward, atol=1e-12)
+        assert not twin_info["prediction_penalty"].any()
+        summed += info["prediction_penalty"]
+        for b in np.flatnonzero(term | trunc):
+            ended.append((summed[b], info["final_info"]["prediction_penalty"][b]))
+            summed[b] = 0.0
+    np.testing.assert_allclose([e[1] for e in ended], [e[0] for e in ended])
+    assert min(e[1] for e in ended) < 0  # walking straight into a crowd gets penalized
+    state = env.state_dict()
+    assert state["_ep_pred"].any() or not summed.any()
+    del state["_ep_pred"]
+    env.load_state_dict(state)
+    assert not env._ep_pred.any()
 
 
 def test_bad_actions_raise_clear_errors_and_overspeed_is_clipped():

@@ -356,3 +356,20 @@ def test_training_mode_survives_env_flags_and_the_intrusion_test_may_change_on_r
     now = {"env": {"task": "CrowdNav-v0", "compute_intrusion": False}, "seed": 1}
     assert resume_conflicts(saved, now, 1) == []
     assert resume_conflicts(saved, {**now, "env": {**now["env"], "task": "BoundedCrowdNav-v0"}}, 1) == ["env"]
+
+
+def test_episode_stats_give_rates_mean_return_and_its_prediction_penalty_part():
+    from lerobot_crowdnav.rl.validation import episode_stats
+
+    episodes = [{"event": "success", "return": 20.0, "prediction_penalty": -2.0, "length": 40},
+                {"event": "human_collision", "return": -25.0, "prediction_penalty": -6.0, "length": 10},
+                {"event": "timeout", "return": 2.0, "prediction_penalty": -1.0, "length": 196},
+                {"event": "human_collision", "return": -21.0, "prediction_penalty": -3.0, "length": 6}]
+    stats = episode_stats(episodes, Accelerator(cpu=True))
+    assert stats["train/episodes"] == 4
+    assert stats["train/success_rate"] == 0.25 and stats["train/human_collision_rate"] == 0.5
+    assert stats["train/timeout_rate"] == 0.25 and stats["train/wall_collision_rate"] == 0.0
+    assert stats["train/episode_return"] == pytest.approx(-6.0)
+    assert stats["train/prediction_penalty"] == pytest.approx(-3.0)
+    assert stats["train/episode_length"] == pytest.approx(63.0)
+    assert episode_stats([], Accelerator(cpu=True)) == {"train/episodes": 0}

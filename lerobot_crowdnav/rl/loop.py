@@ -84,6 +84,7 @@ class Collector:
                 fi = info["final_info"]
                 for b in np.flatnonzero(info["_final_info"]):
                     episodes.append({"event": EVENT_NAMES[int(fi["event"][b])], "return": float(fi["return"][b]),
+                                     "prediction_penalty": float(fi["prediction_penalty"][b]),
                                      "length": int(fi["length"][b])})
             self.starts = done[t].copy()
             self.memory = restart_memory(step.memory, self.starts)

@@ -37,13 +37,14 @@ def validate(agent, env, n_episodes: int, dt: float, device: torch.device) -> di
 
 
 def episode_stats(episodes: list[dict], accelerator) -> dict[str, float]:
-    """Rates, mean return and length of the episodes that ended in an iteration, all processes."""
+    """Rates, mean return, its prediction-penalty part and mean length of the episodes that ended in
+    an iteration, all processes. Return minus penalty is what CrowdNav++'s training log reports."""
     counts = torch.tensor([len(episodes), *[sum(e["event"] == ev for e in episodes) for ev in EVENTS],
-                           sum(e["return"] for e in episodes), sum(e["length"] for e in episodes)],
+                           *[sum(e[k] for e in episodes) for k in ("return", "prediction_penalty", "length")]],
                           dtype=torch.float64, device=accelerator.device)
     c = accelerator.reduce(counts, reduction="sum").cpu().tolist()
     if not c[0]:
         return {"train/episodes": 0}
-    n, *events, ret, length = c
+    n, *events, ret, pred, length = c
     return {"train/episodes": int(n), **{f"train/{ev}_rate": k / n for ev, k in zip(EVENTS, events, strict=True)},
-            "train/episode_return": ret / n, "train/episode_length": length / n}
+            "train/episode_return": ret / n, "train/prediction_penalty": pred / n, "train/episode_length": length / n}

@@ -534,7 +534,7 @@ def _start_episode(b, seed, p, rng, step_count, potential, rp, rv, rg, hp, hv, h
 @nb.njit(cache=True)
 def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp, hv, hg,
               hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd, fut_pos,
-              fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
+              fut_vel, rollout_depth, obs, out_reward, out_pred, out_event, out_dmin, out_intrusion,
               out_intr_dist, out_distance, out_oob, s):
     n, L, dt = p.n_humans, p.n_pred, p.dt
     # (1) Robot action, clipped by norm to v_pref; humans' velocities from current states (step 1
@@ -592,6 +592,7 @@ def _step_one(b, action, p, no_obst, all_idx, rng, step_count, potential, rp, rv
                     worst = min(worst, p.collision_penalty / 2.0 ** (k + 1))
                     break  # smaller k is worse; later k cannot beat it for this human
     out_reward[b] = reward + worst
+    out_pred[b] = worst  # also apart: CrowdNav++'s training log reports returns without it
     out_event[b] = event
     out_dmin[b] = dmin
     out_oob[b] = abs(rx) > p.arena or abs(ry) > p.arena
@@ -709,16 +710,16 @@ def reset_many(idx, seeds, p, rng, step_count, potential, rp, rv, rg, hp, hv, hg
 @nb.njit(cache=True, parallel=True)
 def step_many(n_chunks, actions, p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg, hp,
               hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r, sim_nd,
-              fut_pos, fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin, out_intrusion,
-              out_intr_dist, out_distance, out_oob):
+              fut_pos, fut_vel, rollout_depth, obs, out_reward, out_pred, out_event, out_dmin,
+              out_intrusion, out_intr_dist, out_distance, out_oob):
     n_env = actions.shape[0]
     for c in nb.prange(n_chunks):
         s = _make_scratch(p.n_humans, p.n_pred, 0)
         for b in range(c * n_env // n_chunks, (c + 1) * n_env // n_chunks):
             _step_one(b, actions[b], p, no_obst, all_idx, rng, step_count, potential, rp, rv, rg,
                       hp, hv, hg, hr, hvp, seen_pos, seen_vel, seen_r, pred, visible, nd, sim_r,
-                      sim_nd, fut_pos, fut_vel, rollout_depth, obs, out_reward, out_event, out_dmin,
-                      out_intrusion, out_intr_dist, out_distance, out_oob, s)
+                      sim_nd, fut_pos, fut_vel, rollout_depth, obs, out_reward, out_pred, out_event,
+                      out_dmin, out_intrusion, out_intr_dist, out_distance, out_oob, s)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -740,7 +741,9 @@ PARALLEL_MIN_BATCH = 16  # below this, a Python loop over the per-env kernels is
 class StepResult(NamedTuple):
     """Per-environment outputs of one step (arrays of length B)."""
 
-    reward: np.ndarray  # float64
+    reward: np.ndarray  # float64, the prediction penalty included
+    prediction_penalty: np.ndarray  # its prediction-penalty part (<= 0); CrowdNav++'s training log
+    # leaves it out of the episode returns it reports (added outside its envs' episode monitor)
     event: np.ndarray  # int64, see EVENT_NAMES; RUNNING while the episode goes on
     min_distance: np.ndarray  # closest human surface distance before the move (m)
     intrusion: np.ndarray  # bool: robot inside r + 0.3 of a visible human's true future position;
@@ -856,10 +859,10 @@ class CrowdSim:
     def step(self, actions) -> StepResult:
         a = self.check_actions(actions)
         B = self.num_envs
-        res = StepResult(np.empty(B), np.empty(B, np.int64), np.empty(B), np.empty(B, np.bool_),
-                         np.empty(B), np.empty(B), np.empty(B, np.bool_))
-        outs = (res.reward, res.event, res.min_distance, res.intrusion, res.intrusion_distance,
-                res.distance, res.out_of_bounds)
+        res = StepResult(np.empty(B), np.empty(B), np.empty(B, np.int64), np.empty(B),
+                         np.empty(B, np.bool_), np.empty(B), np.empty(B), np.empty(B, np.bool_))
+        outs = (res.reward, res.prediction_penalty, res.event, res.min_distance, res.intrusion,
+                res.intrusion_distance, res.distance, res.out_of_bounds)
         if self._parallel:
             step_many(self._n_chunks(), a, self.params, self._no_obstacles, self._all_idx,
                       *self._state(), *outs)

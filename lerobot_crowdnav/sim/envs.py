@@ -148,6 +148,7 @@ class CrowdNavVectorEnv(VectorEnv):
         self._next_seed = 0
         self._seeded = False
         self._ep_return = np.zeros(num_envs)
+        self._ep_pred = np.zeros(num_envs)  # the prediction penalty's part of _ep_return
         self._ep_len = np.zeros(num_envs, np.int64)
         self._ep_path = np.zeros(num_envs)
         self._ep_intr = np.zeros(num_envs, np.int64)
@@ -162,11 +163,10 @@ class CrowdNavVectorEnv(VectorEnv):
 
     def _start(self, idx: np.ndarray, seeds: np.ndarray) -> None:
         self.sim.reset(seeds, idx)
-        for acc in (self._ep_return, self._ep_len, self._ep_path, self._ep_intr, self._ep_intr_sum,
-                    self._ep_oob):
-            acc[idx] = 0
+        for k in self._ACCUMULATORS:
+            getattr(self, k)[idx] = 0
 
-    _ACCUMULATORS = ("_ep_return", "_ep_len", "_ep_path", "_ep_intr", "_ep_intr_sum", "_ep_oob")
+    _ACCUMULATORS = ("_ep_return", "_ep_pred", "_ep_len", "_ep_path", "_ep_intr", "_ep_intr_sum", "_ep_oob")
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The whole batch mid-episode (simulator arrays, episode accumulators, seed stream) as
@@ -178,8 +178,8 @@ class CrowdNavVectorEnv(VectorEnv):
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.sim.load_state_dict({k[4:]: v for k, v in state.items() if k.startswith("sim.")})
-        for k in self._ACCUMULATORS:
-            getattr(self, k)[...] = state[k]
+        for k in self._ACCUMULATORS:  # a state saved before an accumulator existed: zeros
+            getattr(self, k)[...] = state.get(k, 0)
         self._next_seed = int(state["_next_seed"])
         self._seeded = True
 
@@ -217,6 +217,7 @@ class CrowdNavVectorEnv(VectorEnv):
         truncated = res.event == TIMEOUT
         terminated = done & ~truncated
         self._ep_return += reward
+        self._ep_pred += res.prediction_penalty
         self._ep_len += 1
         self._ep_path += res.distance
         self._ep_intr += res.intrusion
@@ -233,6 +234,7 @@ class CrowdNavVectorEnv(VectorEnv):
                 "seed": self.sim.seeds.copy(),
                 "length": self._ep_len.copy(),
                 "return": self._ep_return.copy(),
+                "prediction_penalty": self._ep_pred.copy(),
                 "path_length": self._ep_path.copy(),
                 "intrusion_steps": self._ep_intr.copy(),
                 "intrusion_distance_sum": self._ep_intr_sum.copy(),
@@ -257,6 +259,7 @@ class CrowdNavVectorEnv(VectorEnv):
             "event": res.event,
             "is_success": res.event == SUCCESS,
             "min_distance": res.min_distance,  # closest surface distance before the move (m)
+            "prediction_penalty": res.prediction_penalty,  # the reward's prediction-penalty part
             "intrusion": res.intrusion,
             "intrusion_distance": res.intrusion_distance,  # closest true-future centre distance (m)
             "distance": res.distance,  # path length added this step (m)
