@@ -32,7 +32,8 @@ training reward and outcome rates of a window are episode-weighted: the sum over
 the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window
 (an outcome a log does not report reads n/a); the reward without the prediction penalty likewise
 from ``train/episode_return - train/prediction_penalty``, over the iterations that log the
-penalty. The reference's ``eprewmean`` leaves its predictor's penalty out: its training script
+penalty (a window only part of which logs it says which share of its episodes it covers, and is
+drawn hollow). The reference's ``eprewmean`` leaves its predictor's penalty out: its training script
 averages the returns of its per-env episode monitors, and the penalty is added to the rewards
 outside them (by the vectorized wrapper that runs its GST predictor).
 The reference's values are plain means over the log lines in the window: of ``eprewmean`` (its
@@ -123,6 +124,7 @@ class Window:
     # The same without its prediction-penalty part, over the iterations that log that part: what the
     # reference's log reports (its predictor's penalty is added outside its episode monitor).
     reward_without_penalty: float = math.nan
+    split_share: float = 0.0  # the share of the window's episodes in the iterations that log the penalty
     rates: dict[str, float] = field(default_factory=dict)  # episode-weighted rate of each of OUTCOMES
     entropy: float = math.nan  # mean policy entropy (summed over the action dimensions) over the iterations
     val_success: float = math.nan  # latest validation success in the window
@@ -207,9 +209,11 @@ def run_windows(rows: list[dict], window: int) -> list[Window]:
             w.reward = math.fsum(r["train/episode_return"] * r["train/episodes"] for r in train) / w.episodes
             split = [r for r in train if r.get("train/prediction_penalty") is not None]
             if split:
+                n_split = sum(int(r["train/episodes"]) for r in split)
                 w.reward_without_penalty = math.fsum(
                     (r["train/episode_return"] - r["train/prediction_penalty"]) * r["train/episodes"] for r in split
-                ) / sum(int(r["train/episodes"]) for r in split)
+                ) / n_split
+                w.split_share = n_split / w.episodes
             for o in OUTCOMES:
                 w.rates[o] = (math.fsum(r[f"train/{o}_rate"] * r["train/episodes"] for r in train) / w.episodes
                               if all(r.get(f"train/{o}_rate") is not None for r in train) else math.nan)
@@ -266,7 +270,9 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
         span = f"{w.k * window:,}-{end:,}" + ("" if w.complete else " (so far)")
         val = "" if w.val_step is None else f"{100 * w.val_success:.0f}{_interval(w.val_success, val_episodes)} at {w.val_step:,}"
         stds = [w.std, *(policy_std(reference[c].get(w.k, math.nan)) for c in ENTROPY_COLUMNS)]
-        cells = [span, _num(w.reward, ".2f"), _num(w.reward_without_penalty, ".2f"), *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REWARD_COLUMNS),
+        without = _num(w.reward_without_penalty, ".2f") + (f" ({100 * w.split_share:.0f} % of its episodes)"
+                                                             if 0 < w.split_share < 1 else "")
+        cells = [span, _num(w.reward, ".2f"), without, *(_num(reference[c].get(w.k, math.nan), ".2f") for c in REWARD_COLUMNS),
                  _rate(w, "success"), " / ".join(_rate(w, o) for o in FAILURES), " / ".join(_num(x, ".2f") for x in stds),
                  val, _num(w.wall_s / 3600, ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
@@ -299,12 +305,15 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
         top.plot([centre[w.k] for w in partial], [w.reward for w in partial], "o", mfc="none", color="tab:blue",
                  label="this run, window so far")
     split = [w for w in done + partial if not math.isnan(w.reward_without_penalty)]
-    if split:
-        top.plot([centre[w.k] for w in split], [w.reward_without_penalty for w in split], "s--", color="tab:cyan",
+    if split:  # hollow: a window only part of which logs the penalty, or not finished
+        top.plot([centre[w.k] for w in split], [w.reward_without_penalty for w in split], "--", color="tab:cyan",
                  label="this run without prediction penalty (as the reference logs)")
+        for w in split:
+            top.plot(centre[w.k], w.reward_without_penalty, "s", color="tab:cyan",
+                     mfc="tab:cyan" if w.complete and w.split_share == 1 else "none")
     top.set_ylabel(f"training episode reward\n(mean per {window / 1e6:g} M env steps)")
     top.grid(alpha=0.3)
-    top.legend(fontsize=8, loc="lower right")
+    top.legend(fontsize=8, loc="best")
 
     val = [(int(r["env_steps"]), r["val/success_rate"]) for r in rows if r.get("val/success_rate") is not None]
     ys = [100 * v for _, v in val]

@@ -102,6 +102,7 @@ def test_run_windows_are_episode_weighted_with_latest_validation_and_wall_time()
         assert w.wall_s == wall
     assert [w.episodes for w in windows] == [10, 20, 4]
     assert [w.reward_without_penalty for w in windows] == pytest.approx([math.nan, 5.0, 4.75], abs=1e-12, nan_ok=True)
+    assert [w.split_share for w in windows] == pytest.approx([0.0, 0.7, 1.0])  # 14 of window 1's 20 episodes
     assert [w.entropy for w in windows] == pytest.approx([2 * ENTROPY_STD_1 - 1, math.nan, 2 * ENTROPY_STD_1],
                                                          abs=1e-12, nan_ok=True)
 
@@ -177,7 +178,7 @@ def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
     assert lines[0] == "| " + " | ".join(curve_mod.HEADER) + " |" and len(lines) == 5
     # the reference's entropies are E + reward / 10 per line: window 0 E - 0.5 (rand), E - 0.217 (non-rand)
     assert lines[2] == "| 0-1,000 | -3.00 | n/a | -5.00 | -2.17 | 30.0 | 30.0 / 30.0 / 10.0 | 0.61 / 0.61 / 0.81 | 25 at 800 | 0.02 |"
-    assert lines[3] == "| 1,000-2,000 | 2.60 | 5.00 | 4.00 | n/a | 45.0 | n/a / n/a / n/a | n/a / 1.49 / n/a |  | 0.05 |"
+    assert lines[3] == "| 1,000-2,000 | 2.60 | 5.00 (70 % of its episodes) | 4.00 | n/a | 45.0 | n/a / n/a / n/a | n/a / 1.49 / n/a |  | 0.05 |"
     assert lines[4] == ("| 2,000-2,200 (so far) | 4.00 | 4.75 | n/a | n/a | 50.0 | 25.0 / 0.0 / 25.0 | 1.00 / n/a / n/a "
                         "| 50 at 2,200 | 0.06 |")
     # with the run's validation episodes known, each reading gets its 95 % Wilson interval
