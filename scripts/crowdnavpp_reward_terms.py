@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from lerobot_crowdnav.cli import run_cli
 from lerobot_crowdnav.sim.config import SEED_SPLITS, CrowdSimConfig
@@ -116,6 +117,7 @@ def measure(cfg: RewardTermsConfig) -> dict:
     acc = np.zeros((cfg.num_envs, len(TERMS) + 1))  # the terms, then the steps
     ended: list[tuple[str, np.ndarray]] = []
     starts = None
+    bar = tqdm(total=cfg.episodes, desc="episodes", unit="ep")
     while len(ended) < cfg.episodes:
         obs, reward, term, trunc, info = env.step(act(obs, starts))
         done = term | trunc
@@ -130,7 +132,9 @@ def measure(cfg: RewardTermsConfig) -> dict:
         for b in np.flatnonzero(done):
             ended.append((EVENT_NAMES[int(info["final_info"]["event"][b])], acc[b].copy()))
             acc[b] = 0.0
+        bar.update(min(int(done.sum()), cfg.episodes - bar.n))
         starts = done
+    bar.close()
     ended = ended[:cfg.episodes]
 
     def group(rows: list[np.ndarray]) -> Terms | None:
