@@ -26,7 +26,9 @@ reference's reward and entropy curves ``docs/data/crowdnavpp_reference_curves.cs
   window's last iteration.
 
 Windows are ``[k W, (k + 1) W)`` for W = ``--window`` env steps, an iteration or a log line
-belonging to the window of the env-step count it reports (the count at its end). The run's
+belonging to the window of the env-step count it reports (the count at its end); the run's last
+iteration, which ends at or past its budget (``env_steps`` of the same settings), counts in the
+budget's last window. The run's
 training reward and outcome rates of a window are episode-weighted: the sum over its iterations of
 ``train/episode_return x train/episodes`` (resp. ``train/<outcome>_rate x train/episodes``) over
 the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window
@@ -191,12 +193,15 @@ def read_reference(path: Path, window: int) -> dict[str, dict[int, float]]:
 
 # -- the run ------------------------------------------------------------------------------------
 
-def run_windows(rows: list[dict], window: int) -> list[Window]:
+def run_windows(rows: list[dict], window: int, budget: int | None = None) -> list[Window]:
     """Per-window training reward and outcome rates (episode-weighted), latest validation success
-    and cumulative wall time of a run's progress lines."""
+    and cumulative wall time of a run's progress lines. With the run's ``budget`` (env steps), the
+    iteration that ends at or past it counts in the budget's last window: mostly run before the
+    budget, it would otherwise make a window of its own, a point drawn from a handful of episodes."""
     by_k: dict[int, list[dict]] = {}
     for r in rows:
-        by_k.setdefault(int(r["env_steps"]) // window, []).append(r)
+        step = int(r["env_steps"])
+        by_k.setdefault((budget - 1) // window if budget and step >= budget else step // window, []).append(r)
     steps = sorted({int(r["env_steps"]) for r in rows})
     interval = min((b - a for a, b in zip(steps, steps[1:], strict=False) if b > a), default=window)
     out = []
@@ -253,11 +258,11 @@ def _interval(rate: float, n: int | None) -> str:
     return f" [{100 * lo:.0f}, {100 * hi:.0f}]"
 
 
-def val_episodes(run: Path) -> int | None:
-    """The run's validation episodes per reading, from its last checkpoint's settings (None
-    without one)."""
+def run_settings(run: Path) -> dict:
+    """The run's settings, from its last checkpoint (empty without one): its validation episodes
+    per reading and its budget."""
     settings = run / "checkpoints" / "last" / PRETRAINED_MODEL / TRAIN_PPO_CONFIG
-    return json.loads(settings.read_text())["val"]["n_episodes"] if settings.exists() else None
+    return json.loads(settings.read_text()) if settings.exists() else {}
 
 
 def table(windows: list[Window], reference: dict[str, dict[int, float]], window: int,
@@ -372,9 +377,10 @@ def curve(cfg: CurveConfig) -> str | None:
     rows = read_progress(progress.parent)
     if not rows:
         raise ValueError(f"{progress}: no progress lines")
-    windows = run_windows(rows, cfg.window)
+    settings = run_settings(Path(cfg.run))
+    windows = run_windows(rows, cfg.window, settings.get("env_steps"))
     reference = read_reference(Path(cfg.reference), cfg.window)
-    episodes = val_episodes(Path(cfg.run))
+    episodes = settings.get("val", {}).get("n_episodes")
     text = table(windows, reference, cfg.window, episodes)
     print(text)
     if cfg.output_md:

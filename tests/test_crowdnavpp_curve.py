@@ -107,6 +107,16 @@ def test_run_windows_are_episode_weighted_with_latest_validation_and_wall_time()
                                                          abs=1e-12, nan_ok=True)
 
 
+def test_the_iteration_past_the_budget_counts_in_the_budgets_last_window():
+    """A 2,000-step budget: the iterations ending at 2000 and 2200 join window 1, none is left
+    alone in window 2; window 1's reward (8 + 16 - 2 + 30 + 7 + 9) / 24, and it is complete."""
+    windows = curve_mod.run_windows(PROGRESS, W, budget=2000)
+    assert [w.k for w in windows] == [0, 1] and [w.episodes for w in windows] == [10, 24]
+    assert windows[1].reward == pytest.approx(68 / 24, abs=1e-12) and windows[1].complete
+    assert windows[1].last_step == 2200 and windows[1].val_step == 2200
+    assert [w.k for w in curve_mod.run_windows(PROGRESS, W, budget=10_000)] == [0, 1, 2]  # a run in progress
+
+
 def test_reference_logs_reduce_to_exact_window_means(tmp_path):
     rand = curve_mod.reference_log_windows(write_log(tmp_path / "rand.csv", RAND), W)
     assert rand == {"eprewmean": {0: pytest.approx(-5.0, abs=1e-12), 1: pytest.approx(4.0, abs=1e-12)},
@@ -198,7 +208,7 @@ def test_cli_writes_figure_and_table(tmp_path, capsys):
     assert "| 25 at 800 |" in table  # no checkpoint yet: the validation episodes are unknown
     settings = run / "checkpoints" / "last" / "pretrained_model" / "train_ppo_config.json"
     settings.parent.mkdir(parents=True)
-    settings.write_text(json.dumps({"val": {"n_episodes": 100}}))
+    settings.write_text(json.dumps({"val": {"n_episodes": 100}, "env_steps": 100_000}))
     png.unlink()
     curve_mod.main([f"--run={run}", f"--reference={ref}", f"--output_png={png}", f"--output_md={md}", f"--window={W}"])
     assert "| 25 [18, 34] at 800 |" in md.read_text() and png.stat().st_size > 5_000  # with error bars
