@@ -28,22 +28,22 @@ reference's reward and entropy curves ``docs/data/crowdnavpp_reference_curves.cs
 Windows are ``[k W, (k + 1) W)`` for W = ``--window`` env steps, an iteration or a log line
 belonging to the window of the env-step count it reports (the count at its end); the run's last
 iteration, which ends at or past its budget (``env_steps`` of the same settings), counts in the
-budget's last window. The run's
-training reward and outcome rates of a window are episode-weighted: the sum over its iterations of
-``train/episode_return x train/episodes`` (resp. ``train/<outcome>_rate x train/episodes``) over
-the sum of ``train/episodes``, i.e. the mean over every training episode that ended in the window
-(an outcome a log does not report reads n/a); the reward without the prediction penalty likewise
-from ``train/episode_return - train/prediction_penalty``, over the iterations that log the
-penalty (a window only part of which logs it says which share of its episodes it covers, and is
-drawn hollow). The reference's ``eprewmean`` leaves its predictor's penalty out: its training script
-averages the returns of its per-env episode monitors, and the penalty is added to the rewards
-outside them (by the vectorized wrapper that runs its GST predictor).
-The reference's values are plain means over the log lines in the window: of ``eprewmean`` (its
-mean return of its last 100 training episodes) and of ``loss/policy_entropy`` (the Gaussian's
-entropy per action dimension). The policy's standard deviation is the geometric mean over the two
-action dimensions, ``exp(H - ln(2 pi e) / 2)`` for an entropy H per dimension: the run's from the
-plain mean of its ``entropy`` (summed over the two dimensions) over the window's iterations. A
-window the run has not finished is marked "(so far)" in the table and drawn hollow.
+budget's last window. The run's training reward and outcome rates of a window are episode-weighted:
+the sum over its iterations of ``train/episode_return x train/episodes`` (resp.
+``train/<outcome>_rate x train/episodes``) over the sum of ``train/episodes``, i.e. the mean over
+every training episode that ended in the window (an outcome a log does not report reads n/a); the
+reward without the prediction penalty likewise from ``train/episode_return -
+train/prediction_penalty``, over the iterations that log the penalty (a window only part of which
+logs it says which share of its episodes it covers, and is drawn hollow). The reference's
+``eprewmean`` leaves its predictor's penalty out: its training script averages the returns of its
+per-env episode monitors, and the penalty is added to the rewards outside them (by the vectorized
+wrapper that runs its GST predictor). The reference's values are plain means over the log lines in
+the window: of ``eprewmean`` (its mean return of its last 100 training episodes) and of
+``loss/policy_entropy`` (the Gaussian's entropy per action dimension). The policy's standard
+deviation is the geometric mean over the two action dimensions, ``exp(H - ln(2 pi e) / 2)`` for an
+entropy H per dimension: the run's from the plain mean of its ``entropy`` (summed over the two
+dimensions) over the window's iterations. A window the run has not finished is marked "(so far)" in
+the table and drawn hollow.
 
 The reference CSV (columns ``env_steps`` = window centre, ``eprewmean_rand``,
 ``eprewmean_non_rand``, ``entropy_rand``, ``entropy_non_rand``) is this reduction of
