@@ -15,6 +15,9 @@ reference's reward and entropy curves ``docs/data/crowdnavpp_reference_curves.cs
   human collision, wall collision, timeout), which tells a dip's cause; and the policy's standard
   deviation against the reference's (PPO's own dynamics: no entropy bonus, so only the updates
   move it);
+* with ``--compare`` (other runs' folders: other seeds or starts of the same recipe), their
+  training reward without the prediction penalty and training success per window in the same
+  figure, which shows the spread between runs;
 * a markdown table to stdout (and to ``--output_md`` if given), one row per window the run has
   reached: env steps, the run's training reward, the same without its prediction-penalty part
   (what the reference's log reports, where the run logs that part), the reference's reward
@@ -58,6 +61,7 @@ ended). Without ``--run`` it stops there.
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 from dataclasses import dataclass, field
@@ -106,6 +110,11 @@ class CurveConfig:
     x_max: int = 0
     # Figure title; empty: one naming the run's folder, its env steps and its wall time.
     title: str = ""
+    # Other runs' folders (a progress.jsonl each: other seeds or starts of the same recipe) drawn
+    # beside this one, labelled by folder name: their training reward without the prediction
+    # penalty and their training success per finished window, which shows the runs' spread. The
+    # table stays this run's.
+    compare: list[Path] = field(default_factory=list)
     # The reference's own log trained_models/GST_predictor_rand/progress.csv (randomized humans),
     # to rebuild --reference from.
     reference_rand_log: Path | None = None
@@ -284,8 +293,31 @@ def table(windows: list[Window], reference: dict[str, dict[int, float]], window:
     return "\n".join(lines)
 
 
+def compare_points(windows: list[Window], window: int) -> list[tuple[float, float, float]]:
+    """What the figure draws of a compared run: (window centre, training reward without the
+    prediction penalty, training success) for each finished window that logs the penalty
+    throughout (a partly logged one would mix two quantities on one line)."""
+    return [((w.k + 0.5) * window, w.reward_without_penalty, w.rates["success"])
+            for w in windows if w.complete and w.episodes and w.split_share == 1]
+
+
+def read_run(run: Path) -> list[dict]:
+    """A run folder's progress lines; a clear error for a folder without any."""
+    progress = Path(run) / "progress.jsonl"
+    if not progress.exists():
+        raise FileNotFoundError(f"{progress}: no such file")
+    rows = read_progress(progress.parent)
+    if not rows:
+        raise ValueError(f"{progress}: no progress lines")
+    return rows
+
+
+COMPARE_COLOURS = ("tab:olive", "tab:pink", "tab:brown", "tab:gray")
+
+
 def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[int, float]], window: int,
-           out: Path, x_max: int, title: str, val_episodes: int | None = None) -> None:
+           out: Path, x_max: int, title: str, val_episodes: int | None = None,
+           others: list[tuple[str, list[Window]]] = ()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -316,6 +348,12 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
         for w in split:
             top.plot(centre[w.k], w.reward_without_penalty, "s", color="tab:cyan",
                      mfc="tab:cyan" if w.complete and w.split_share == 1 else "none")
+    for (name, ws), colour in zip(others, itertools.cycle(COMPARE_COLOURS)):
+        points = compare_points(ws, window)
+        top.plot([x for x, _, _ in points], [r for _, r, _ in points], "^:", color=colour, ms=4,
+                 label=f"{name} without prediction penalty")
+        bottom.plot([x for x, _, _ in points], [100 * sr for _, _, sr in points], "^:", color=colour, ms=4,
+                    label=f"{name}: training success")
     top.set_ylabel(f"training episode reward\n(mean per {window / 1e6:g} M env steps)")
     top.grid(alpha=0.3)
     top.legend(fontsize=8, loc="best")
@@ -339,7 +377,7 @@ def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[in
         if partial:
             ax.plot([centre[w.k] for w in partial], [100 * w.rates[outcome] for w in partial], "o", mfc="none",
                     color=colour)
-    bottom.set_ylabel("this run: success (%)")
+    bottom.set_ylabel("success (%)" if others else "this run: success (%)")
     causes.set_ylabel("this run: training\nepisodes ending in (%)")
     spread.set_ylabel("policy std (m/s)\n(geometric mean of vx, vy)")
     spread.set_xlabel("env steps")
@@ -371,12 +409,9 @@ def curve(cfg: CurveConfig) -> str | None:
         if not any(logs):
             raise ValueError("give --run=DIR (a folder with progress.jsonl), or the two reference logs")
         return None
-    progress = Path(cfg.run) / "progress.jsonl"
-    if not progress.exists():
-        raise FileNotFoundError(f"{progress}: no such file")
-    rows = read_progress(progress.parent)
-    if not rows:
-        raise ValueError(f"{progress}: no progress lines")
+    rows = read_run(Path(cfg.run))
+    others = [(Path(o).resolve().name, run_windows(read_run(Path(o)), cfg.window, run_settings(Path(o)).get("env_steps")))
+              for o in cfg.compare]
     settings = run_settings(Path(cfg.run))
     windows = run_windows(rows, cfg.window, settings.get("env_steps"))
     reference = read_reference(Path(cfg.reference), cfg.window)
@@ -391,7 +426,7 @@ def curve(cfg: CurveConfig) -> str | None:
         walls = [r["time/wall_s"] for r in rows if r.get("time/wall_s") is not None]
         title = cfg.title or (f"{Path(cfg.run).resolve().name}: {int(last['env_steps']):,} env steps"
                               + (f", {max(walls) / 3600:.1f} h of training" if walls else ""))
-        figure(windows, rows, reference, cfg.window, Path(cfg.output_png), cfg.x_max, title, episodes)
+        figure(windows, rows, reference, cfg.window, Path(cfg.output_png), cfg.x_max, title, episodes, others)
     return text
 
 

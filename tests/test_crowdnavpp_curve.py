@@ -196,6 +196,16 @@ def test_table_marks_the_window_so_far_and_missing_values(tmp_path):
     assert lines[2].endswith("| 25 [18, 34] at 800 | 0.02 |") and lines[4].endswith("| 50 [40, 60] at 2,200 | 0.06 |")
 
 
+def test_a_compared_run_draws_only_its_finished_windows_that_log_the_penalty_throughout():
+    # PROGRESS: window 0 logs no penalty, window 1 only 70 % of its episodes, window 2 is not
+    # finished: none is drawn. Penalty on every line: windows 0 and 1, not the unfinished 2.
+    assert curve_mod.compare_points(curve_mod.run_windows(PROGRESS, W), W) == []
+    logged = [r | {"train/prediction_penalty": -1.0} if r.get("train/episodes") else r for r in PROGRESS]
+    points = curve_mod.compare_points(curve_mod.run_windows(logged, W), W)
+    # window 0: -3.0 + 1 = -2.0, success 0.3; window 1: 2.6 + 1 = 3.6, success 0.45
+    assert [(x, round(r, 9), round(sr, 9)) for x, r, sr in points] == [(500.0, -2.0, 0.3), (1500.0, 3.6, 0.45)]
+
+
 def test_cli_writes_figure_and_table(tmp_path, capsys):
     run = write_progress(tmp_path / "run")
     ref, png, md = tmp_path / "ref.csv", tmp_path / "fig" / "curve.png", tmp_path / "table.md"
@@ -214,6 +224,15 @@ def test_cli_writes_figure_and_table(tmp_path, capsys):
     assert "| 25 [18, 34] at 800 |" in md.read_text() and png.stat().st_size > 5_000  # with error bars
     with Image.open(png) as im:
         assert im.format == "PNG" and im.size[0] > 500 and im.size[1] > 400
+    # Another run beside it changes the figure, not the table; a compared folder without a log is refused.
+    other = write_progress(tmp_path / "other_seed", [r | {"train/prediction_penalty": -1.0} if r.get("train/episodes") else r
+                                                     for r in PROGRESS])
+    alone, table = png.read_bytes(), md.read_text()
+    curve_mod.main([f"--run={run}", f"--reference={ref}", f"--output_png={png}", f"--output_md={md}", f"--window={W}",
+                    f"--compare=[{other}]"])
+    assert png.read_bytes() != alone and md.read_text() == table
+    with pytest.raises(SystemExit, match="missing/progress.jsonl: no such file"):
+        curve_mod.main([f"--run={run}", f"--reference={ref}", "--output_png=null", f"--compare=[{tmp_path / 'missing'}]"])
     # Without a figure, and the errors a user can make, as one-line messages.
     curve_mod.main([f"--run={run}", f"--reference={ref}", "--output_png=null", f"--window={W}"])
     with pytest.raises(SystemExit, match="progress.jsonl: no such file"):
