@@ -83,6 +83,7 @@ ACTION_DIMS = 2  # (vx, vy): the run logs its Gaussian's entropy summed over the
 # How a training episode ends: progress.jsonl's train/<outcome>_rate.
 OUTCOMES = ("success", "human_collision", "wall_collision", "timeout")
 FAILURES = OUTCOMES[1:]
+COMPARE_COLOURS = ("tab:olive", "tab:pink", "tab:brown", "tab:gray")  # --compare's runs, in turn
 HEADER = ["env steps (window)", "train reward", "train reward without prediction penalty",
           "reference reward, rand", "reference reward, non-rand",
           "train success (%)", "train human / wall collision / timeout (%)",
@@ -301,18 +302,16 @@ def compare_points(windows: list[Window], window: int) -> list[tuple[float, floa
             for w in windows if w.complete and w.episodes and w.split_share == 1]
 
 
-def read_run(run: Path) -> list[dict]:
-    """A run folder's progress lines; a clear error for a folder without any."""
-    progress = Path(run) / "progress.jsonl"
+def load_run(run: Path, window: int) -> tuple[list[dict], dict, list[Window]]:
+    """A run folder's progress lines, settings and windows; a clear error for a folder without a log."""
+    progress = run / "progress.jsonl"
     if not progress.exists():
         raise FileNotFoundError(f"{progress}: no such file")
-    rows = read_progress(progress.parent)
+    rows = read_progress(run)
     if not rows:
         raise ValueError(f"{progress}: no progress lines")
-    return rows
-
-
-COMPARE_COLOURS = ("tab:olive", "tab:pink", "tab:brown", "tab:gray")
+    settings = run_settings(run)
+    return rows, settings, run_windows(rows, window, settings.get("env_steps"))
 
 
 def figure(windows: list[Window], rows: list[dict], reference: dict[str, dict[int, float]], window: int,
@@ -409,11 +408,8 @@ def curve(cfg: CurveConfig) -> str | None:
         if not any(logs):
             raise ValueError("give --run=DIR (a folder with progress.jsonl), or the two reference logs")
         return None
-    rows = read_run(Path(cfg.run))
-    others = [(Path(o).resolve().name, run_windows(read_run(Path(o)), cfg.window, run_settings(Path(o)).get("env_steps")))
-              for o in cfg.compare]
-    settings = run_settings(Path(cfg.run))
-    windows = run_windows(rows, cfg.window, settings.get("env_steps"))
+    rows, settings, windows = load_run(Path(cfg.run), cfg.window)
+    others = [(Path(o).resolve().name, load_run(Path(o), cfg.window)[2]) for o in cfg.compare]
     reference = read_reference(Path(cfg.reference), cfg.window)
     episodes = settings.get("val", {}).get("n_episodes")
     text = table(windows, reference, cfg.window, episodes)

@@ -59,6 +59,8 @@ PROGRESS = [
 # window 1 none, window 2 2 E (std 1), E being the entropy per dimension at std 1. The reward without
 # the prediction penalty, over the iterations that log it: window 0 none, window 1 (4 * (4 + 1) +
 # 10 * (3 + 2)) / 14 = 5.0, window 2 (1 * (7 + 3) + 3 * 3) / 4 = 4.75.
+# The same run had it logged the prediction penalty on every line with episodes (-1 each).
+LOGGED = [r | {"train/prediction_penalty": -1.0} if r.get("train/episodes") else r for r in PROGRESS]
 NAN3 = (math.nan,) * 3
 EXPECTED = [  # k, reward, success, (human, wall, timeout), val success, val step, wall_s, complete
     (0, -3.0, 0.3, (0.3, 0.3, 0.1), 0.25, 800, 80.0, True),
@@ -200,8 +202,7 @@ def test_a_compared_run_draws_only_its_finished_windows_that_log_the_penalty_thr
     # PROGRESS: window 0 logs no penalty, window 1 only 70 % of its episodes, window 2 is not
     # finished: none is drawn. Penalty on every line: windows 0 and 1, not the unfinished 2.
     assert curve_mod.compare_points(curve_mod.run_windows(PROGRESS, W), W) == []
-    logged = [r | {"train/prediction_penalty": -1.0} if r.get("train/episodes") else r for r in PROGRESS]
-    points = curve_mod.compare_points(curve_mod.run_windows(logged, W), W)
+    points = curve_mod.compare_points(curve_mod.run_windows(LOGGED, W), W)
     # window 0: -3.0 + 1 = -2.0, success 0.3; window 1: 2.6 + 1 = 3.6, success 0.45
     assert [(x, round(r, 9), round(sr, 9)) for x, r, sr in points] == [(500.0, -2.0, 0.3), (1500.0, 3.6, 0.45)]
 
@@ -225,8 +226,7 @@ def test_cli_writes_figure_and_table(tmp_path, capsys):
     with Image.open(png) as im:
         assert im.format == "PNG" and im.size[0] > 500 and im.size[1] > 400
     # Another run beside it changes the figure, not the table; a compared folder without a log is refused.
-    other = write_progress(tmp_path / "other_seed", [r | {"train/prediction_penalty": -1.0} if r.get("train/episodes") else r
-                                                     for r in PROGRESS])
+    other = write_progress(tmp_path / "other_seed", LOGGED)
     alone, table = png.read_bytes(), md.read_text()
     curve_mod.main([f"--run={run}", f"--reference={ref}", f"--output_png={png}", f"--output_md={md}", f"--window={W}",
                     f"--compare=[{other}]"])
