@@ -361,6 +361,27 @@ def test_render_rgb_array():
     assert frame.std() > 5  # something is drawn
 
 
+def test_an_episode_gif_holds_every_drawn_frame_exactly(tmp_path):
+    """The GIF shares one palette of the frames' own colours (lossless), and frames with more
+    colours than a palette holds still write, quantized by Pillow."""
+    from PIL import Image, ImageSequence
+
+    from lerobot_crowdnav.sim.render import render_frame, save_video
+
+    env = CrowdNavEnv(task="BoundedCrowdNav-v0")
+    env.reset(seed=3)
+    frames = [render_frame(env.sim, 0)]
+    for _ in range(12):
+        env.step(env.expert_action("orca"))
+        frames.append(render_frame(env.sim, 0))
+    with Image.open(save_video(frames, tmp_path / "episode.gif")) as gif:
+        decoded = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(gif)]
+    assert len(decoded) == len(frames) and all(np.array_equal(a, b) for a, b in zip(decoded, frames))
+    noise = [np.random.default_rng(s).integers(0, 256, (64, 64, 3), dtype=np.uint8) for s in range(3)]
+    with Image.open(save_video(noise, tmp_path / "noise.gif")) as gif:
+        assert gif.n_frames == 3
+
+
 def test_vector_render_call_draws_only_requested_slots(monkeypatch):
     env = CrowdNavVectorEnv(8, render_mode="rgb_array")
     env.reset(seed=0)
