@@ -222,7 +222,9 @@ def test_main_job_runs_end_to_end_in_a_tiny_configuration(tiny_main):
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
     rerun = (root / "report.md").read_text()
     assert "| pretrain bounded H=5 seed=1000 |" in rerun and "skipped (complete)" in rerun
-    pipeline_main(argv + ["--rerun_eval=true"])
+    evaluated = {p: p.stat().st_mtime_ns for p in (root / "eval").rglob("metrics.json")}
+    pipeline_main(argv + ["--rerun_eval=true"])  # every row evaluated again, to the same tables
+    assert all(p.stat().st_mtime_ns != t for p, t in evaluated.items()) and len(evaluated) >= 14
     assert {p.name: p.read_text() for p in (root / "tables").iterdir()} == tables
 
     # Another preset does not take the finished demonstrations: the resume they get refuses it.
