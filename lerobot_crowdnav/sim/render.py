@@ -88,13 +88,12 @@ def _shared_palette(frames: list[np.ndarray]) -> list[Image.Image] | None:
     indexing them costs a fraction of Pillow's per-frame quantization and palette optimization
     (several times the drawing itself); the GIF stays lossless, a little larger."""
     keys = [(f[..., 0].astype(np.uint32) << 16) | (f[..., 1].astype(np.uint32) << 8) | f[..., 2] for f in frames]
-    seen = np.zeros(1 << 24, bool)
+    index = np.zeros(1 << 24, np.uint8)  # first a mark per colour present, then its palette slot
     for k in keys:
-        seen[k] = True
-    colours = np.flatnonzero(seen)
+        index[k] = 1
+    colours = np.flatnonzero(index)
     if len(colours) > 256:
         return None
-    index = np.zeros(1 << 24, np.uint8)
     index[colours] = np.arange(len(colours))
     palette = np.stack([colours >> 16, (colours >> 8) & 255, colours & 255], axis=1).astype(np.uint8).tobytes()
     images = []
